@@ -1,0 +1,52 @@
+"""ament_python package setup for youbot_fdi.
+
+On a robot, ``colcon build`` installs the console scripts into ``lib/youbot_fdi`` (see setup.cfg)
+so that ``ros2 run youbot_fdi <node>`` finds them; rclpy and the message packages come from the
+apt ROS 2 install (package.xml). In a plain venv, the ``ros`` extra pulls the PyPI wheels.
+"""
+from glob import glob
+import os
+
+from setuptools import find_packages, setup
+
+PACKAGE_NAME = 'youbot_fdi'
+
+# The ROS 2 Jazzy wheels on PyPI, for a venv without an apt ROS install. Never in install_requires:
+# on a robot these come from apt and a pip copy would shadow them.
+ROS_WHEELS = ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces']
+
+EXTRAS = {
+    'ros': ROS_WHEELS,
+    'plot': ['matplotlib>=3.6'],
+    # Cross-check of our own structural analysis; heavy (sympy, scikit-learn): never on the robot path.
+    'structure': ['faultdiagnosistoolbox>=0.12'],
+    'test': ['pytest>=7', 'hypothesis>=6', 'colcon-common-extensions'],
+}
+EXTRAS['all'] = sorted({req for reqs in EXTRAS.values() for req in reqs})
+
+setup(
+    name=PACKAGE_NAME,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
+        ('share/' + PACKAGE_NAME, ['package.xml', 'README.md']),
+        (os.path.join('share', PACKAGE_NAME, 'config'), glob('config/*.yaml')),
+        (os.path.join('share', PACKAGE_NAME, 'config', 'profiles'), glob('config/profiles/*.yaml')),
+    ],
+    python_requires='>=3.10',
+    install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.10', 'pyyaml>=6', 'rosbags>=0.10',
+                      'python-can>=4.3'],
+    extras_require=EXTRAS,
+    zip_safe=False,
+    maintainer='youbot_fdi maintainers',
+    maintainer_email='youbot-fdi@example.org',
+    description='Fault detection and isolation for omnidirectional mecanum bases (KUKA youBot).',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'youbot-fdi = youbot_fdi.cli.main:main',
+        ],
+    },
+)

@@ -1,0 +1,110 @@
+"""Mass matrix against the report's closed form; exact discretisation against scipy and closed forms."""
+import numpy as np
+import pytest
+import scipy.signal
+
+from youbot_fdi.model import DriveTrain, load_model, zoh_discretize
+
+R, K = 0.0475, 0.385
+
+
+@pytest.fixture(scope='module', params=['seed', 'youbot'])
+def model(request):
+    return load_model(request.param)
+
+
+def report_mass_matrix(m, j_z, j_w):
+    """Report §3.2: M with A = m R^2 / 8, B = J_z R^2 / (16 (l+L)^2)."""
+    a, b = m * R ** 2 / 8, j_z * R ** 2 / (16 * K ** 2)
+    return np.array([[a + b + j_w, -b, b, a - b], [-b, a + b + j_w, a - b, b],
+                     [b, a - b, a + b + j_w, -b], [a - b, b, -b, a + b + j_w]])
+
+
+def test_mass_matrix_equals_report_closed_form(model):
+    params = model.profile.dynamics
+    expected = report_mass_matrix(params.mass, params.yaw_inertia, params.wheel_inertia[0])
+    np.testing.assert_allclose(model.dynamics.mass_matrix, expected, rtol=1e-10, atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(model.dynamics.mass_matrix) > 0)
+
+
+def test_seed_profile_has_the_reports_stiffness():
+    dyn = load_model('seed').dynamics
+    assert 9e3 < np.linalg.cond(dyn.mass_matrix) < 1.1e4
+    fastest = dyn.time_constants()[:2]
+    assert np.all((fastest > 35e-6) & (fastest < 45e-6))
+
+
+def test_youbot_profile_is_well_conditioned():
+    dyn = load_model('youbot').dynamics
+    assert np.linalg.cond(dyn.mass_matrix) < 10
+    assert dyn.time_constants()[0] > 0.1  # no sub-millisecond modes
+
+
+@pytest.mark.parametrize('dt', [1e-4, 1e-3, 1e-2])
+def test_zoh_matches_scipy_cont2discrete(model, dt):
+    a_matrix, b_matrix = model.dynamics.state_space()
+    a_d, b_d = zoh_discretize(a_matrix, b_matrix, dt)
+    n = a_matrix.shape[0]
+    ref = scipy.signal.cont2discrete((a_matrix, b_matrix, np.eye(n), np.zeros_like(b_matrix)), dt,
+                                     method='zoh')
+    np.testing.assert_allclose(a_d, ref[0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(b_d, ref[1], rtol=1e-9, atol=1e-12)
+
+
+def modal_velocity_step(dyn, velocity, torque, dt):
+    """Closed-form exact step of M v' = tau - D v via the generalised eigenvectors (M-orthonormal)."""
+    import scipy.linalg
+    rates, vectors = scipy.linalg.eigh(dyn.friction_matrix, dyn.mass_matrix)
+    q0, u = vectors.T @ dyn.mass_matrix @ velocity, vectors.T @ torque
+    decay = np.exp(-rates * dt)
+    return vectors @ (decay * q0 + (1 - decay) / rates * u)
+
+
+@pytest.mark.parametrize('dt', [1e-3, 1e-2])
+def test_discrete_model_is_exact_and_stable_with_stiff_seed_values(dt):
+    dyn = load_model('seed').dynamics
+    discrete = dyn.discretize(dt)
+    velocity, torque = np.array([1.0, -2.0, 0.5, 3.0]), np.array([0.1, 0.0, -0.05, 0.02])
+    _, new_velocity = discrete.step(np.zeros(4), velocity, torque)
+    np.testing.assert_allclose(new_velocity, modal_velocity_step(dyn, velocity, torque, dt),
+                               rtol=1e-7, atol=1e-9)
+    assert np.max(np.abs(np.linalg.eigvals(discrete.a_d))) <= 1.0 + 1e-12
+    # Forward Euler at the same step is violently unstable on these values.
+    a_matrix, _ = dyn.state_space()
+    euler = np.eye(8) + a_matrix * dt
+    assert np.max(np.abs(np.linalg.eigvals(euler))) > 10
+
+
+def test_constant_torque_settles_at_torque_over_friction(model):
+    """M v' = tau - D v: with the same D on every wheel the steady state is tau / D, whatever M."""
+    dyn = model.dynamics
+    discrete = dyn.discretize(0.01)
+    torque = np.array([0.05, -0.02, 0.03, 0.01])
+    position, velocity = np.zeros(4), np.zeros(4)
+    for _ in range(1000):  # 10 s, many times the slowest time constant
+        position, velocity = discrete.step(position, velocity, torque)
+    np.testing.assert_allclose(velocity, torque / 0.035, rtol=1e-4)
+
+
+def test_position_integrates_velocity(model):
+    discrete = model.dynamics.discretize(1e-3)
+    velocity = np.array([2.0, -1.0, 0.5, 0.0])
+    no_friction_torque = model.dynamics.friction_matrix @ velocity  # holds the speeds constant
+    position, new_velocity = discrete.step(np.zeros(4), velocity, no_friction_torque)
+    np.testing.assert_allclose(new_velocity, velocity, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(position, velocity * 1e-3, rtol=1e-9, atol=1e-15)
+
+
+def test_current_torque_and_motor_units_round_trip():
+    drive = DriveTrain(gear_ratio=364 / 9405, torque_constant=0.0335,
+                       encoder_ticks_per_revolution=4000, max_current=3.564)
+    assert drive.current_to_torque(1.0) == pytest.approx(0.0335 / (364 / 9405))
+    assert drive.milliamps_to_torque(1000.0) == pytest.approx(0.8656, rel=1e-3)
+    assert drive.rpm_to_wheel_speed(4000.0) == pytest.approx(16.21, rel=1e-3)
+    assert drive.wheel_angle_to_ticks(2 * np.pi) == pytest.approx(4000 / (364 / 9405))
+    for value in (-3.0, 0.0, 2.5):
+        assert drive.torque_to_current(drive.current_to_torque(value)) == pytest.approx(value)
+        assert drive.ticks_to_wheel_angle(drive.wheel_angle_to_ticks(value)) == pytest.approx(value)
+        assert drive.wheel_speed_to_rpm(drive.rpm_to_wheel_speed(value)) == pytest.approx(value)
+    with pytest.raises(ValueError, match='dt'):
+        zoh_discretize(np.zeros((2, 2)), np.zeros((2, 1)), 0.0)
