@@ -24,6 +24,16 @@ EXTRAS = {
 }
 EXTRAS['all'] = sorted({req for reqs in EXTRAS.values() for req in reqs})
 
+
+def config_data_files():
+    """Every YAML under config/, installed to share/<package>/config/ with its sub-folder."""
+    entries = {}
+    for path in sorted(glob('config/**/*.yaml', recursive=True)):
+        folder = os.path.join('share', PACKAGE_NAME, os.path.dirname(path))
+        entries.setdefault(folder, []).append(path)
+    return sorted(entries.items())
+
+
 setup(
     name=PACKAGE_NAME,
     version='0.1.0',
@@ -31,8 +41,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
         ('share/' + PACKAGE_NAME, ['package.xml', 'README.md']),
-        (os.path.join('share', PACKAGE_NAME, 'config'), glob('config/*.yaml')),
-        (os.path.join('share', PACKAGE_NAME, 'config', 'profiles'), glob('config/profiles/*.yaml')),
+        *config_data_files(),
     ],
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy>=1.24', 'scipy>=1.10', 'pyyaml>=6', 'rosbags>=0.10',
@@ -43,7 +52,6 @@ setup(
     maintainer_email='youbot-fdi@example.org',
     description='Fault detection and isolation for omnidirectional mecanum bases (KUKA youBot).',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'youbot-fdi = youbot_fdi.cli.main:main',

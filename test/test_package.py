@@ -10,7 +10,7 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'README.md', 'resource', 'youbot_fdi',
                  'config')
-CORE_MODULES = ('youbot_fdi.model', 'youbot_fdi.cli.main')
+CORE_MODULES = ('youbot_fdi.model', 'youbot_fdi.structure', 'youbot_fdi.cli.main')
 
 BLOCKER = """
 import sys
