@@ -55,6 +55,9 @@ setup(
     entry_points={
         'console_scripts': [
             'youbot-fdi = youbot_fdi.cli.main:main',
+            'driver_shim = youbot_fdi.nodes.driver_shim:main',
+            'virtual_youbot = youbot_fdi.nodes.virtual_youbot:main',
+            'youbot_sim = youbot_fdi.nodes.composed:sim_main',
         ],
     },
 )

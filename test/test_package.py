@@ -14,21 +14,44 @@ CORE_MODULES = ('youbot_fdi.model', 'youbot_fdi.structure', 'youbot_fdi.cli.main
 
 BLOCKER = """
 import sys
+blocked = set(sys.argv[1].split(','))
 class Block:
     def find_spec(self, name, path=None, target=None):
-        if name.split('.')[0] in {'rclpy', 'can', 'rosbags'}:
+        if name.split('.')[0] in blocked:
             raise ImportError('blocked: ' + name)
 sys.meta_path.insert(0, Block())
 import importlib
-for module in sys.argv[1:]:
+for module in sys.argv[2:]:
     importlib.import_module(module)
 """
+TMCM_MODULES = ('youbot_fdi.tmcm.tmcl', 'youbot_fdi.tmcm.process_data', 'youbot_fdi.tmcm.driver',
+                'youbot_fdi.tmcm.virtual_base', 'youbot_fdi.bench')
+
+
+def import_blocked(blocked, modules):
+    return subprocess.run([sys.executable, '-c', BLOCKER, ','.join(blocked), *modules],
+                          capture_output=True, text=True, timeout=60)
 
 
 def test_core_imports_without_rclpy_can_or_rosbags():
-    result = subprocess.run([sys.executable, '-c', BLOCKER, *CORE_MODULES], capture_output=True,
-                            text=True, timeout=60)
+    result = import_blocked(('rclpy', 'can', 'rosbags'), CORE_MODULES)
     assert result.returncode == 0, result.stderr
+
+
+def test_can_layer_imports_without_rclpy_or_rosbags():
+    result = import_blocked(('rclpy', 'rosbags'), TMCM_MODULES)
+    assert result.returncode == 0, result.stderr
+
+
+def test_only_nodes_import_rclpy():
+    offenders = []
+    for path in (REPO / 'youbot_fdi').rglob('*.py'):
+        if 'nodes' in path.relative_to(REPO / 'youbot_fdi').parts:
+            continue
+        text = path.read_text()
+        if 'import rclpy' in text or 'from rclpy' in text:
+            offenders.append(str(path.relative_to(REPO)))
+    assert offenders == []
 
 
 def test_colcon_build_installs_executables_and_ament_marker(tmp_path):

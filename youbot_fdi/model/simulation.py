@@ -7,12 +7,12 @@ the FDI observer build on it.
 
 Values here are in the kinematic convention and SI units at the wheel; currents in A.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from youbot_fdi.errors import ModelError
-from youbot_fdi.model.dynamics import zoh_discretize
+from youbot_fdi.model.dynamics import WheelDynamics, zoh_discretize
 from youbot_fdi.model.firmware import (ControlMode, LoopKind, VelocityController,
                                        velocity_loop_matrices)
 
@@ -65,7 +65,16 @@ class BaseSimulator:
         self.velocity = np.zeros(n) if velocity is None else np.array(velocity, dtype=float)
         self.controller.reset()
 
-    def step(self, setpoint, mode, torque_gain=None, external_torque=None):
+    def set_viscous_friction(self, friction):
+        """Change the per-wheel viscous friction D [N·m·s/rad] (fault injection); re-discretises.
+
+        The sampled loop only: the continuous (report) loop keeps its precomputed closed loop.
+        """
+        friction = tuple(float(v) for v in np.broadcast_to(friction, (self.n_wheels,)))
+        parameters = replace(self.model.dynamics.parameters, viscous_friction=friction)
+        self.plant = WheelDynamics(self.model.kinematics, parameters).discretize(self.step_size)
+
+    def step(self, setpoint, mode, torque_gain=None, external_torque=None, measured_velocity=None):
         """Advance one step.
 
         Parameters
@@ -79,6 +88,9 @@ class BaseSimulator:
             Delivered over commanded torque (1 nominal; fault injection).
         external_torque : array_like, shape (n,), optional
             Extra torque on each wheel [N·m] (fault injection, disturbances).
+        measured_velocity : array_like, shape (n,), optional
+            What the firmware's velocity loop measures [rad/s] (default: the true speeds;
+            fault injection of a frozen encoder).
 
         Returns
         -------
@@ -104,8 +116,9 @@ class BaseSimulator:
             if not np.any(current_mode):
                 return self._step_continuous(target)
 
+        feedback = self.velocity if measured_velocity is None else np.asarray(measured_velocity)
         current = np.where(current_mode, np.clip(setpoint, -max_current, max_current),
-                           self.controller.current(target, self.velocity, ~current_mode))
+                           self.controller.current(target, feedback, ~current_mode))
         torque = gain * current * per_amp
         self.position, self.velocity = self.plant.step(self.position, self.velocity, torque + extra)
         self.time += self.step_size

@@ -1,0 +1,160 @@
+"""The project's benchmark: speed figures as ratios against baselines measured in the same run.
+
+Each case times a piece of the product and a baseline that bounds what is achievable on this
+machine, so the ratio means the same on a fast laptop and on the youBot's Atom. No test asserts a
+time; this module is what ``youbot-fdi bench`` prints.
+"""
+from dataclasses import dataclass
+import time
+import uuid
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class BenchResult:
+    """One benchmark line."""
+
+    name: str
+    value: float
+    unit: str
+    baseline_name: str
+    baseline: float
+    note: str = ''
+
+    @property
+    def ratio(self):
+        """value / baseline."""
+        return self.value / self.baseline if self.baseline else float('nan')
+
+
+def _rate(function, min_time=0.5):
+    """Calls per second of ``function`` over at least ``min_time`` seconds."""
+    count, started = 0, time.perf_counter()
+    while True:
+        function()
+        count += 1
+        elapsed = time.perf_counter() - started
+        if elapsed >= min_time:
+            return count / elapsed
+
+
+def bench_model(profile='youbot'):
+    """Simulator steps per second vs the bare 8x8 matrix-vector products a step needs."""
+    from youbot_fdi.model import BaseSimulator, ControlMode, load_model
+    model = load_model(profile)
+    simulator = BaseSimulator(model)
+    setpoint = model.kinematics.inverse((0.3, 0.1, 0.2))
+    a_d, b_d = simulator.plant.a_d, simulator.plant.b_d
+    state, torque = np.zeros(8), np.ones(4)
+    steps = _rate(lambda: simulator.step(setpoint, ControlMode.VELOCITY))
+    bare = _rate(lambda: a_d @ state + b_d @ torque)
+    return BenchResult('model: firmware-period steps', steps, 'steps/s', 'bare ZOH matvec', bare,
+                       f'{steps / 1000:.0f}x real time at 1 kHz')
+
+
+def bench_structure():
+    """Structural analysis of each shipped model vs importing the toolbox that cross-checks it."""
+    import subprocess
+    import sys
+    from youbot_fdi.cli.structure import resolve_model
+    from youbot_fdi.structure.analysis import analyze
+    from youbot_fdi.structure.report import placement_summary
+    results = []
+    probe = subprocess.run([sys.executable, '-c', 'import time; t = time.perf_counter(); '
+                            'import faultdiagnosistoolbox; print(time.perf_counter() - t)'],
+                           capture_output=True, text=True)
+    toolbox_import = float(probe.stdout.strip()) if probe.returncode == 0 else float('nan')
+    for name in ('seed', 'youbot'):
+        model = resolve_model(name)
+        started = time.perf_counter()
+        placement_summary(analyze(model))
+        elapsed = time.perf_counter() - started
+        results.append(BenchResult(f'structure --model {name}', elapsed, 's',
+                                   'faultdiagnosistoolbox import', toolbox_import,
+                                   'target < 1 s'))
+    return results
+
+
+def bench_can(cycles=200):
+    """Lockstep driver + virtual base cycles per second vs raw virtual-bus frame exchange.
+
+    A cycle is 4 command frames, 12 status frames and 10 ms of simulated firmware (10 steps).
+    The baseline moves the same 16 frames per cycle through python-can's virtual bus, bare.
+    """
+    import can
+    from youbot_fdi.model import load_model
+    from youbot_fdi.tmcm.driver import BaseDriver, DriverSettings
+    from youbot_fdi.tmcm.virtual_base import VirtualBaseSettings, VirtualYoubot
+    from dataclasses import replace
+
+    channel = f'bench-{uuid.uuid4()}'
+    model = load_model('youbot')
+    base = VirtualYoubot(model, can.Bus(interface='virtual', channel=channel),
+                         replace(VirtualBaseSettings(), can_channel=channel), owns_bus=True)
+    driver = BaseDriver(model, can.Bus(interface='virtual', channel=channel),
+                        replace(DriverSettings(), can_channel=channel), clock=lambda: base.time,
+                        owns_bus=True)
+    command = model.kinematics.to_driver(model.kinematics.inverse((0.3, 0.0, 0.0)))
+
+    def settle():
+        while True:
+            b, _ = base.transport.snapshot()
+            d, _ = driver.transport.snapshot()
+            if b.get('received', 0) >= d.get('sent', 0) and d.get('received', 0) >= b.get('sent', 0):
+                return
+            time.sleep(0)
+
+    try:
+        started = time.perf_counter()
+        for _ in range(cycles):
+            driver.set_command('velocity', command)
+            driver.cycle()
+            settle()
+            base.advance(0.01)
+        lockstep = cycles / (time.perf_counter() - started)
+        started = time.perf_counter()
+        for _ in range(cycles):
+            base.advance(0.01)
+        simulation_only = cycles / (time.perf_counter() - started)
+    finally:
+        driver.close()
+        base.close()
+
+    a = can.Bus(interface='virtual', channel=channel + 'raw')
+    b = can.Bus(interface='virtual', channel=channel + 'raw')
+    frame = can.Message(arbitration_id=0x211, data=bytes(8), is_extended_id=False)
+    try:
+        started = time.perf_counter()
+        for _ in range(cycles):
+            for _ in range(16):
+                a.send(frame)
+                b.recv(1.0)
+        raw = cycles / (time.perf_counter() - started)
+    finally:
+        a.shutdown()
+        b.shutdown()
+    return [BenchResult('CAN: shim + virtual base, lockstep', lockstep, 'cycles/s',
+                        'raw virtual-bus exchange of 16 frames', raw,
+                        f'{lockstep * 0.01:.1f}x real time at 100 Hz cycles'),
+            BenchResult('virtual base: 10 ms of firmware', simulation_only, 'cycles/s',
+                        'raw virtual-bus exchange of 16 frames', raw)]
+
+
+def run_all(progress=print):
+    """Run every case; returns the results."""
+    results = []
+    for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can)):
+        progress(f'running {label} ...')
+        outcome = case()
+        results.extend(outcome if isinstance(outcome, list) else [outcome])
+    return results
+
+
+def format_results(results):
+    """A text table."""
+    lines = [f'{"case":<40}{"value":>14} {"unit":<9}{"baseline (same run)":>42}{"ratio":>9}  note']
+    for r in results:
+        lines.append(f'{r.name:<40}{r.value:>14.4g} {r.unit:<9}'
+                     f'{r.baseline_name + " " + format(r.baseline, ".4g"):>42}{r.ratio:>9.3g}  {r.note}')
+    return '\n'.join(lines)

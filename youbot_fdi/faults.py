@@ -1,0 +1,27 @@
+"""The fault vocabulary of CONTRACT.md, shared by fault injection and fault decisions."""
+import enum
+
+
+class FaultKind(str, enum.Enum):
+    """Fault types, as they appear in fault events (``"fault": "runaway"``)."""
+
+    RUNAWAY = 'runaway'  # the wheel keeps being driven although its command changed or stopped
+    TORQUE_LOSS = 'torque_loss'  # less torque than the current implies
+    STUCK = 'stuck'  # the wheel is blocked
+    FRICTION = 'friction'  # friction well above the model's
+    ENCODER_FREEZE = 'encoder_freeze'  # the position/velocity reading stops changing
+    COMM_LOSS = 'comm_loss'  # no fresh data from the base
+    UNKNOWN = 'unknown'  # detected, not identified
+
+
+#: Fault kinds a virtual base can inject (everything but ``unknown``).
+INJECTABLE = tuple(k for k in FaultKind if k is not FaultKind.UNKNOWN)
+
+
+def parse_fault_kind(text):
+    """``'torque_loss'`` -> FaultKind.TORQUE_LOSS; ValueError naming the choices otherwise."""
+    try:
+        return FaultKind(text)
+    except ValueError:
+        msg = f'unknown fault {text!r}; one of {[k.value for k in FaultKind]}'
+        raise ValueError(msg) from None

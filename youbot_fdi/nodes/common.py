@@ -1,0 +1,104 @@
+"""Helpers shared by the nodes: parameters from settings dataclasses, QoS, diagnostics, main()."""
+import dataclasses
+import sys
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, qos_profile_sensor_data, \
+    ReliabilityPolicy
+
+from youbot_fdi.errors import ConfigError, FdiError
+from youbot_fdi.settings import settings_from_mapping
+
+#: Subscriptions to sensor streams accept reliable and best-effort publishers alike.
+SENSOR_QOS = qos_profile_sensor_data
+#: Our own streams are published reliably (robot_state_publisher and `ros2 topic echo` connect).
+STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                        history=HistoryPolicy.KEEP_LAST)
+#: Latched state (fault events): a late subscriber gets the last message.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         history=HistoryPolicy.KEEP_LAST)
+DIAGNOSTICS_TOPIC = '/diagnostics'
+NAME_PREFIX = 'youbot_fdi'
+
+
+def declare_settings(node, cls):
+    """Declare one ROS parameter per dataclass field (default = field default); return settings.
+
+    Values come from ``--ros-args --params-file`` / ``-p`` overrides; they are validated by the
+    dataclass like the offline tools' YAML (ConfigError on a bad value).
+    """
+    values = {}
+    for field in dataclasses.fields(cls):
+        default = field.default
+        value = node.declare_parameter(field.name, list(default) if isinstance(default, tuple)
+                                       else default).value
+        values[field.name] = value
+    return settings_from_mapping(cls, values, source=f'node {node.get_name()}')
+
+
+def stamp_to_seconds(stamp):
+    """builtin_interfaces/Time -> float seconds."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def seconds_to_stamp(seconds):
+    """float seconds -> builtin_interfaces/Time."""
+    from builtin_interfaces.msg import Time
+    sec = int(seconds // 1)
+    return Time(sec=sec, nanosec=int(round((seconds - sec) * 1e9)) % 1_000_000_000)
+
+
+def now_seconds(node):
+    """The node clock (ROS time: sim time when use_sim_time is set) in seconds."""
+    return node.get_clock().now().nanoseconds * 1e-9
+
+
+def health_to_diagnostics(node, records, component, hardware_prefix=''):
+    """Convert core :class:`~youbot_fdi.tmcm.driver.Health` records to a DiagnosticArray."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    array = DiagnosticArray()
+    array.header.stamp = node.get_clock().now().to_msg()
+    for record in records:
+        status = DiagnosticStatus()
+        status.level = bytes([int(record.level)])
+        status.name = f'{NAME_PREFIX}/{component}: {record.name}'
+        status.message = record.message
+        status.hardware_id = f'{hardware_prefix}{record.name}' if hardware_prefix else record.name
+        status.values = [KeyValue(key=str(k), value=str(v)) for k, v in record.values.items()]
+        array.status.append(status)
+    return array
+
+
+def spin_nodes(factories, args=None):
+    """Create nodes with ``factories`` (callables -> Node) and spin them in one executor.
+
+    The canonical Jazzy main: try/finally, KeyboardInterrupt is a normal stop,
+    ExternalShutdownException exits 1, a configuration error exits 2 with a one-line reason.
+    """
+    rclpy.init(args=args)
+    nodes = []
+    executor = SingleThreadedExecutor()
+    status = 0
+    try:
+        for factory in factories:
+            nodes.append(factory())
+            executor.add_node(nodes[-1])
+        executor.spin()
+    except KeyboardInterrupt:
+        pass
+    except ExternalShutdownException:
+        status = 1
+    except (ConfigError, FdiError) as err:
+        print(f'error: {err}', file=sys.stderr)
+        status = 2
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            close = getattr(node, 'close', None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status

@@ -1,0 +1,127 @@
+"""``driver_shim`` node: /wheel_commands -> TMCM process data over CAN -> /joint_states, /diagnostics.
+
+``ros2 run youbot_fdi driver_shim --ros-args --params-file config/driver_shim.yaml``
+
+Topics (CONTRACT.md, driver convention): subscribes ``/wheel_commands`` (JointState: ``velocity``
+[rad/s] or ``effort`` [N·m], matched by joint name); publishes ``/joint_states`` (position [rad],
+velocity [rad/s], effort [N·m] from the measured current, stamped with the sample time) every
+cycle with fresh data, and ``/diagnostics`` (one status per wheel module and one for the bus).
+Services ``~/switch_on_motors`` and ``~/switch_off_motors`` (std_srvs/Trigger).
+A command older than ``command_timeout`` is replaced by zero speed (watchdog).
+"""
+import sys
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from youbot_fdi.model.profile import load_model
+from youbot_fdi.nodes.common import (declare_settings, DIAGNOSTICS_TOPIC, health_to_diagnostics,
+                                     now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
+                                     STREAM_QOS)
+from youbot_fdi.tmcm.driver import BaseDriver, CommandKind, DriverSettings
+from youbot_fdi.tmcm.transport import open_bus
+
+NODE_NAME = 'driver_shim'
+
+
+class DriverShimNode(Node):
+    """Thin adapter: ROS messages <-> :class:`~youbot_fdi.tmcm.driver.BaseDriver`."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        self.settings = declare_settings(self, DriverSettings)
+        self.model = load_model(self.settings.profile)
+        self.names = list(self.model.wheel_names)
+        bus = open_bus(self.settings.can_interface, self.settings.can_channel)
+        self.driver = BaseDriver(self.model, bus, self.settings, clock=lambda: now_seconds(self),
+                                 owns_bus=True)
+        self.joint_pub = self.create_publisher(JointState, '/joint_states', STREAM_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self.create_subscription(JointState, '/wheel_commands', self.on_command, SENSOR_QOS)
+        self.create_service(Trigger, '~/switch_on_motors', self.on_switch_on)
+        self.create_service(Trigger, '~/switch_off_motors', self.on_switch_off)
+        self._last_stamp = None
+        self._configured = False
+        self.create_timer(1.0 / self.settings.cycle_rate, self.on_cycle)
+        self.create_timer(1.0 / self.settings.diagnostics_rate, self.publish_diagnostics)
+
+    def on_command(self, msg):
+        """Match the command by joint name and hand it to the driver; reject bad ones visibly."""
+        index = {name: i for i, name in enumerate(msg.name)}
+        missing = [n for n in self.names if n not in index]
+        if missing:
+            self.driver.rejected_commands += 1
+            self.driver.last_rejection = f'/wheel_commands lacks joints {missing}'
+            self.get_logger().warning(self.driver.last_rejection, throttle_duration_sec=2.0)
+            return
+        for kind, array in ((CommandKind.VELOCITY, msg.velocity), (CommandKind.EFFORT, msg.effort)):
+            if len(array) == 0:
+                continue
+            if len(array) != len(msg.name):
+                self.driver.rejected_commands += 1
+                self.driver.last_rejection = (f'/wheel_commands {kind.value} has {len(array)} values '
+                                              f'for {len(msg.name)} names')
+                self.get_logger().warning(self.driver.last_rejection, throttle_duration_sec=2.0)
+                return
+            try:
+                self.driver.set_command(kind, [array[index[n]] for n in self.names])
+            except ValueError as err:
+                self.get_logger().warning(str(err), throttle_duration_sec=2.0)
+            return
+        self.driver.rejected_commands += 1
+        self.driver.last_rejection = '/wheel_commands carries neither velocity nor effort'
+
+    def on_cycle(self):
+        if not self._configured:
+            self._configured = True
+            failed = self.driver.configure_modules()
+            if failed:
+                self.get_logger().warning(f'modules did not answer configuration: {failed}')
+        self.driver.cycle()
+        sample = self.driver.sample()
+        if sample is None or sample.stamp == self._last_stamp:
+            return
+        self._last_stamp = sample.stamp
+        msg = JointState()
+        msg.header.stamp = seconds_to_stamp(sample.stamp)
+        msg.name = self.names
+        msg.position = [float(v) for v in sample.position]
+        msg.velocity = [float(v) for v in sample.velocity]
+        msg.effort = [float(v) for v in sample.effort]
+        self.joint_pub.publish(msg)
+
+    def publish_diagnostics(self):
+        hardware = {name: f'tmcm-0x{module:02x}' for name, module in
+                    zip(self.names, self.settings.module_ids)}
+        records = self.driver.health()
+        array = health_to_diagnostics(self, records, NODE_NAME)
+        for status, record in zip(array.status, records):
+            status.hardware_id = hardware.get(record.name, f'can:{self.settings.can_channel}')
+        self.diag_pub.publish(array)
+
+    def on_switch_on(self, _request, response):
+        silent = self.driver.motors_on()
+        response.success = not silent
+        response.message = 'motors on' if not silent else f'motors on; no answer from {silent}'
+        return response
+
+    def on_switch_off(self, _request, response):
+        self.driver.motors_off()
+        response.success, response.message = True, 'motors off (0 mA, coasting)'
+        return response
+
+    def close(self):
+        self.driver.close()
+
+
+def main(args=None):
+    """Entry point of ``ros2 run youbot_fdi driver_shim``."""
+    return spin_nodes([DriverShimNode], args=args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
+
+

@@ -1,0 +1,323 @@
+"""The base driver behind the ``driver_shim`` node: wheel commands in, wheel samples out, over CAN.
+
+Plain Python (python-can, no rclpy), so tests and tools can drive a base without ROS. Per cycle it
+sends every module its process-data command; the modules' status frames come back asynchronously
+and are assembled into a :class:`BaseSample` in wheel units (rad, rad/s, N·m), driver convention.
+
+Safety: a **command watchdog** turns a command older than ``command_timeout`` into zero speed (the
+original youBot driver keeps sending the last command forever). ``motors_off`` commands 0 mA in
+current mode, as the youBot driver's switchOffMotors does.
+"""
+from dataclasses import dataclass
+import enum
+import threading
+import time
+
+import numpy as np
+
+from youbot_fdi.errors import ConfigError
+from youbot_fdi.model.firmware import ControlMode
+from youbot_fdi.tmcm.parameters import AxisParameter, describe_flags, ERROR_FLAGS, ErrorFlag
+from youbot_fdi.tmcm.process_data import (CYCLE_MODULO, MotorCommand, ProcessDataIds,
+                                          StatusAssembler)
+from youbot_fdi.tmcm.tmcl import decode_reply_can, TmclCommand, TmclRequest
+from youbot_fdi.tmcm.transport import CanTransport
+
+
+class CommandKind(str, enum.Enum):
+    """What ``/wheel_commands`` carries."""
+
+    VELOCITY = 'velocity'  # [rad/s]
+    EFFORT = 'effort'  # [N·m]
+
+
+class Level(enum.IntEnum):
+    """Diagnostic levels (REP-107 / diagnostic_msgs values)."""
+
+    OK = 0
+    WARN = 1
+    ERROR = 2
+    STALE = 3
+
+
+@dataclass(frozen=True)
+class DriverSettings:
+    """Settings of the driver shim (``config/driver_shim.yaml``)."""
+
+    profile: str = 'youbot'
+    can_interface: str = 'virtual'
+    can_channel: str = 'youbot'
+    module_ids: tuple = (0x11, 0x12, 0x13, 0x14)
+    host_id: int = 0x02
+    cycle_rate: float = 100.0  # process-data cycles per second [Hz]
+    command_timeout: float = 0.25  # command watchdog [s]
+    stale_cycles: int = 10  # a module silent this many cycles is lost
+    tmcl_timeout: float = 0.2  # wait for a TMCL reply [s]
+    controller_timeout: float = 0.1  # written to every module's GP 90 at start [s]
+    diagnostics_rate: float = 1.0  # [Hz]
+
+    def validate(self, source='<settings>'):
+        """Raise ConfigError on unusable values."""
+        problems = []
+        for name in ('cycle_rate', 'command_timeout', 'tmcl_timeout', 'diagnostics_rate'):
+            if getattr(self, name) <= 0:
+                problems.append(f'{name} must be > 0')
+        if self.stale_cycles < 1:
+            problems.append('stale_cycles must be >= 1')
+        if self.controller_timeout < 0:
+            problems.append('controller_timeout must be >= 0')
+        if len(set(self.module_ids)) != len(self.module_ids) or self.host_id in self.module_ids:
+            problems.append('module_ids must be distinct and differ from host_id')
+        if problems:
+            msg = f'{source}: ' + '; '.join(problems)
+            raise ConfigError(msg)
+
+
+@dataclass(frozen=True)
+class BaseSample:
+    """The latest reading of every wheel (driver convention); arrays of shape (n,)."""
+
+    stamp: float  # driver-clock time the newest status arrived [s]
+    position: np.ndarray  # [rad]
+    velocity: np.ndarray  # [rad/s]
+    effort: np.ndarray  # from the measured motor current [N·m]
+    error_flags: np.ndarray  # int
+    age: np.ndarray  # time since each wheel's status arrived [s]; inf if never
+
+
+@dataclass(frozen=True)
+class Health:
+    """One diagnostic status: a wheel's module or the bus."""
+
+    name: str
+    level: Level
+    message: str
+    values: dict
+
+
+class BaseDriver:
+    """Drives the modules of a base over a python-can bus.
+
+    Parameters
+    ----------
+    model : PlatformModel
+        Wheel names and the drive train (unit conversions).
+    bus : can.BusABC
+    settings : DriverSettings
+    clock : callable
+        Returns the current time [s] (the node passes ROS time, so sim time works).
+    """
+
+    def __init__(self, model, bus, settings=DriverSettings(), ids=ProcessDataIds(),
+                 clock=time.monotonic, owns_bus=False):
+        settings.validate()
+        n = model.kinematics.n_wheels
+        if len(settings.module_ids) != n:
+            msg = f'{len(settings.module_ids)} module ids for {n} wheels'
+            raise ConfigError(msg)
+        self.model, self.settings, self.ids, self.clock = model, settings, ids, clock
+        self.drive = model.drive
+        self.wheel_names = model.wheel_names
+        self.n_wheels = n
+        self._lock = threading.Lock()
+        self._reply_ready = threading.Condition(self._lock)
+        self._replies = {}
+        self._assembler = StatusAssembler()
+        self._module_index = {m: k for k, m in enumerate(settings.module_ids)}
+        self._status_ids = {}
+        for k, module in enumerate(settings.module_ids):
+            for part, can_id in enumerate(ids.status_ids(module)):
+                self._status_ids[can_id] = (k, part)
+        self._position = np.zeros(n)
+        self._velocity = np.zeros(n)
+        self._effort = np.zeros(n)
+        self._flags = np.zeros(n, dtype=np.int64)
+        self._received = np.full(n, -np.inf)
+        self._newest = -np.inf
+        self._command_kind = CommandKind.VELOCITY
+        self._command = np.zeros(n)
+        self._command_stamp = -np.inf
+        self.motors_enabled = True
+        self.cycle_count = 0
+        self.rejected_commands = 0
+        self.last_rejection = ''
+        self.transport = CanTransport(bus, self._on_frame, owns_bus=owns_bus)
+
+    # ------------------------------------------------------------------ commands
+    def set_command(self, kind, values, stamp=None):
+        """Store a wheel command (driver convention): speeds [rad/s] or efforts [N·m].
+
+        Raises ValueError (and counts it) for a wrong length or a non-finite value; the previous
+        command stays in force and the watchdog keeps running.
+        """
+        kind = CommandKind(kind)
+        values = np.asarray(values, dtype=float)
+        if values.shape != (self.n_wheels,) or not np.all(np.isfinite(values)):
+            self.rejected_commands += 1
+            self.last_rejection = f'{kind.value} command {values.tolist()} rejected: need {self.n_wheels} finite values'
+            raise ValueError(self.last_rejection)
+        with self._lock:
+            self._command_kind = kind
+            self._command = values.copy()
+            self._command_stamp = self.clock() if stamp is None else stamp
+
+    def command_is_stale(self, now=None):
+        """True when the last command is older than the watchdog timeout (or there is none)."""
+        now = self.clock() if now is None else now
+        return now - self._command_stamp > self.settings.command_timeout
+
+    def _module_commands(self, now):
+        """The (mode, value) per module this cycle, in motor units."""
+        if not self.motors_enabled:
+            return [(ControlMode.CURRENT, 0)] * self.n_wheels
+        if self.command_is_stale(now):
+            return [(ControlMode.VELOCITY, 0)] * self.n_wheels
+        if self._command_kind is CommandKind.VELOCITY:
+            rpm = np.rint(self.drive.wheel_speed_to_rpm(self._command)).astype(int)
+            return [(ControlMode.VELOCITY, int(v)) for v in rpm]
+        milliamps = np.rint(self.drive.torque_to_milliamps(self._command)).astype(int)
+        return [(ControlMode.CURRENT, int(v)) for v in milliamps]
+
+    def cycle(self, now=None):
+        """Send one process-data command to every module; returns how many went out."""
+        now = self.clock() if now is None else now
+        with self._lock:
+            commands = self._module_commands(now)
+            self.cycle_count = (self.cycle_count + 1) % CYCLE_MODULO
+            cycle = self.cycle_count
+        sent = 0
+        for module, (mode, value) in zip(self.settings.module_ids, commands):
+            sent += self.transport.send(self.ids.command_id(module),
+                                        MotorCommand(int(mode), value, cycle).encode())
+        return sent
+
+    # ------------------------------------------------------------------ receiving
+    def _on_frame(self, arbitration_id, data, _timestamp):
+        if arbitration_id == self.settings.host_id:
+            reply = decode_reply_can(arbitration_id, data[:7]) if len(data) == 7 else None
+            with self._reply_ready:
+                if reply is not None and reply.module in self._module_index:
+                    self._replies[(reply.module, reply.command)] = reply
+                    self._reply_ready.notify_all()
+            return
+        where = self._status_ids.get(arbitration_id)
+        if where is None:
+            return
+        index, part = where
+        with self._lock:
+            status = self._assembler.add(self.settings.module_ids[index], part, data)
+            if status is None:
+                return
+            now = self.clock()
+            self._position[index] = float(self.drive.ticks_to_wheel_angle(status.position))
+            self._velocity[index] = float(self.drive.rpm_to_wheel_speed(status.velocity))
+            self._effort[index] = float(self.drive.milliamps_to_torque(status.current))
+            self._flags[index] = status.error_flags
+            self._received[index] = now
+            self._newest = now
+
+    def sample(self, now=None):
+        """The latest :class:`BaseSample`, or None before every wheel has reported once."""
+        now = self.clock() if now is None else now
+        with self._lock:
+            if not np.all(np.isfinite(self._received)):
+                return None
+            return BaseSample(self._newest, self._position.copy(), self._velocity.copy(),
+                              self._effort.copy(), self._flags.copy(), now - self._received)
+
+    # ------------------------------------------------------------------ TMCL client
+    def request(self, wheel, command, type_, value=0, motor=0):
+        """Send a TMCL request to one wheel's module and wait for the reply (or None on timeout)."""
+        index = wheel if isinstance(wheel, int) else self.wheel_names.index(wheel)
+        module = self.settings.module_ids[index]
+        key = (module, int(command))
+        with self._reply_ready:
+            self._replies.pop(key, None)
+        self.transport.send(*TmclRequest(module, int(command), int(type_), motor, int(value)).to_can())
+        with self._reply_ready:
+            arrived = self._reply_ready.wait_for(lambda: key in self._replies,
+                                                 self.settings.tmcl_timeout)
+            return self._replies.pop(key) if arrived else None
+
+    def clear_flags(self):
+        """Clear the timeout and I²t flags of every module; returns the wheels that did not answer."""
+        silent = []
+        for index, name in enumerate(self.wheel_names):
+            for parameter in (AxisParameter.CLEAR_TIMEOUT_FLAG, AxisParameter.CLEAR_I2T_FLAG):
+                reply = self.request(index, TmclCommand.SAP, parameter, 1)
+                if reply is None or not reply.ok:
+                    silent.append(name)
+                    break
+        return silent
+
+    def configure_modules(self):
+        """Write the controller timeout (GP 90) and clear flags; returns the wheels that failed."""
+        failed = []
+        milliseconds = int(round(self.settings.controller_timeout * 1000))
+        for index, name in enumerate(self.wheel_names):
+            reply = self.request(index, TmclCommand.SGP, 90, milliseconds)
+            if reply is None or not reply.ok:
+                failed.append(name)
+        return sorted(set(failed) | set(self.clear_flags()))
+
+    def motors_on(self):
+        """Enable motion commands and clear the modules' sticky flags; returns silent wheels."""
+        self.motors_enabled = True
+        return self.clear_flags()
+
+    def motors_off(self):
+        """Command 0 mA in current mode from the next cycle on (the wheels coast)."""
+        self.motors_enabled = False
+
+    # ------------------------------------------------------------------ health
+    def health(self, now=None):
+        """Per-wheel module health and the bus health, as :class:`Health` records."""
+        now = self.clock() if now is None else now
+        period = 1.0 / self.settings.cycle_rate
+        stale_after = self.settings.stale_cycles * period
+        with self._lock:
+            received, flags = self._received.copy(), self._flags.copy()
+            incomplete = self._assembler.incomplete
+        records = []
+        for index, name in enumerate(self.wheel_names):
+            age = now - received[index]
+            names = describe_flags(int(flags[index]))
+            values = {'age_s': f'{age:.3f}', 'error_flags': f'0x{int(flags[index]):05X}',
+                      'flags': ' '.join(names) or 'none'}
+            if not np.isfinite(received[index]):
+                records.append(Health(name, Level.STALE, 'no data from the module yet', values))
+            elif age > stale_after:
+                records.append(Health(name, Level.ERROR, f'no data for {age:.2f} s (comm_loss)', values))
+            elif int(flags[index]) & ERROR_FLAGS & ~ErrorFlag.OVER_CURRENT:
+                bad = describe_flags(int(flags[index]) & ERROR_FLAGS & ~ErrorFlag.OVER_CURRENT)
+                records.append(Health(name, Level.ERROR, 'module reports ' + ', '.join(bad), values))
+            elif int(flags[index]) & ErrorFlag.OVER_CURRENT:
+                records.append(Health(name, Level.WARN, 'current at its limit', values))
+            else:
+                records.append(Health(name, Level.OK, 'ok', values))
+        counters, last_error = self.transport.snapshot()
+        values = {key: str(value) for key, value in sorted(counters.items())}
+        values.update({'incomplete_samples': str(incomplete), 'rejected_commands': str(self.rejected_commands),
+                       'command_watchdog': 'tripped' if self.command_is_stale(now) else 'ok',
+                       'motors': 'on' if self.motors_enabled else 'off', 'last_error': last_error
+                       or self.last_rejection})
+        problems = sum(counters.get(k, 0) for k in ('malformed', 'send_errors', 'error_frames',
+                                                    'handler_errors')) + incomplete + self.rejected_commands
+        if all(r.level in (Level.STALE, Level.ERROR) and 'no data' in r.message for r in records):
+            level, message = Level.ERROR, 'no module answers'
+        elif problems:
+            level, message = Level.WARN, f'{problems} bad frames or commands so far'
+        else:
+            level, message = Level.OK, 'ok'
+        records.append(Health('bus', level, message, values))
+        return records
+
+    def close(self):
+        """Stop the transport (and the bus if owned)."""
+        self.transport.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
