@@ -84,45 +84,26 @@ def bench_can(cycles=200):
     """
     import can
     from youbot_fdi.model import load_model
-    from youbot_fdi.tmcm.driver import BaseDriver, DriverSettings
-    from youbot_fdi.tmcm.virtual_base import VirtualBaseSettings, VirtualYoubot
-    from dataclasses import replace
+    from youbot_fdi.tmcm.lockstep import LockstepBase
 
-    channel = f'bench-{uuid.uuid4()}'
     model = load_model('youbot')
-    base = VirtualYoubot(model, can.Bus(interface='virtual', channel=channel),
-                         replace(VirtualBaseSettings(), can_channel=channel), owns_bus=True)
-    driver = BaseDriver(model, can.Bus(interface='virtual', channel=channel),
-                        replace(DriverSettings(), can_channel=channel), clock=lambda: base.time,
-                        owns_bus=True)
     command = model.kinematics.to_driver(model.kinematics.inverse((0.3, 0.0, 0.0)))
-
-    def settle():
-        while True:
-            b, _ = base.transport.snapshot()
-            d, _ = driver.transport.snapshot()
-            if b.get('received', 0) >= d.get('sent', 0) and d.get('received', 0) >= b.get('sent', 0):
-                return
-            time.sleep(0)
-
+    rig = LockstepBase(model)
     try:
         started = time.perf_counter()
         for _ in range(cycles):
-            driver.set_command('velocity', command)
-            driver.cycle()
-            settle()
-            base.advance(0.01)
+            rig.step('velocity', command)
         lockstep = cycles / (time.perf_counter() - started)
         started = time.perf_counter()
         for _ in range(cycles):
-            base.advance(0.01)
+            rig.base.advance(0.01)
         simulation_only = cycles / (time.perf_counter() - started)
     finally:
-        driver.close()
-        base.close()
+        rig.close()
 
-    a = can.Bus(interface='virtual', channel=channel + 'raw')
-    b = can.Bus(interface='virtual', channel=channel + 'raw')
+    channel = f'bench-{uuid.uuid4()}'
+    a = can.Bus(interface='virtual', channel=channel)
+    b = can.Bus(interface='virtual', channel=channel)
     frame = can.Message(arbitration_id=0x211, data=bytes(8), is_extended_id=False)
     try:
         started = time.perf_counter()

@@ -29,6 +29,8 @@ Schema (units in brackets)::
       velocity_kp: [A/(rad/s)]
       velocity_ki: [A/rad]
       loop: discrete|continuous           # optional (discrete)
+    fdi: {...}                            # optional: FDI settings (config/fdi.yaml keys)
+    identification: {...}                 # optional: how `identify` got these values
 """
 from dataclasses import dataclass
 import math
@@ -126,6 +128,8 @@ class ModelProfile:
     dynamics: DynamicParameters
     firmware: FirmwareParameters
     source: str = ''
+    fdi: dict = None  # optional FDI settings learned by `identify` (config/fdi.yaml keys)
+    identification: dict = None  # optional record of how the parameters were identified
 
 
 class PlatformModel:
@@ -211,6 +215,13 @@ def _parse_firmware(section):
     return firmware
 
 
+def _optional_mapping(section, key):
+    value = section.raw(key, default={}, required=False)
+    if not isinstance(value, dict):
+        section.fail(key, 'must be a mapping')
+    return value
+
+
 def parse_profile(data, source='<profile>'):
     """Validate a profile mapping (as loaded from YAML) into a :class:`ModelProfile`."""
     top = _Section(data, '', source)
@@ -222,7 +233,9 @@ def parse_profile(data, source='<profile>'):
         drive=_parse_drive(top.section('drive')),
         dynamics=_parse_dynamics(top.section('dynamics'), platform.n_wheels),
         firmware=_parse_firmware(top.section('firmware')),
-        source=source)
+        source=source,
+        fdi=_optional_mapping(top, 'fdi'),
+        identification=_optional_mapping(top, 'identification'))
     top.finish()
     return profile
 

@@ -64,8 +64,8 @@ class VirtualBaseSettings:
     halted_velocity: int = 5
     position_gain: float = 5.0
     max_positioning_velocity: int = 4000
-    current_noise: float = 0.0
-    velocity_noise: float = 0.0
+    current_noise: float = 5.0
+    velocity_noise: float = 1.0
     seed: int = 0
     realtime_step: float = 0.005
     fault: str = NO_FAULT

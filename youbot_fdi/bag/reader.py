@@ -1,0 +1,220 @@
+"""Read rosbag2 recordings (sqlite3 or mcap) into wheel samples, streaming, with rosbags.
+
+Messages are matched to the model's wheels **by joint name**. Bad messages (NaN, arrays shorter
+than the names, a wheel missing) are skipped and counted, never fatal; an unreadable recording or
+one without the joint-state topic raises :class:`RecordingError` with a one-line reason.
+"""
+from dataclasses import dataclass
+import math
+from pathlib import Path
+
+import numpy as np
+
+from youbot_fdi.errors import FdiError
+
+JOINT_STATES = '/joint_states'
+WHEEL_COMMANDS = '/wheel_commands'
+CMD_VEL = '/cmd_vel'
+JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
+NANOSECONDS = 1e9
+
+
+class RecordingError(FdiError):
+    """A recording cannot be read, or lacks what is needed."""
+
+
+@dataclass(frozen=True)
+class JointSample:
+    """One /joint_states message, in the model's wheel order (driver convention)."""
+
+    stamp: float  # header stamp [s]
+    position: np.ndarray  # [rad]
+    velocity: np.ndarray  # [rad/s]
+    effort: np.ndarray  # [N·m]; NaN where the message had none
+
+
+@dataclass(frozen=True)
+class CommandSample:
+    """One /wheel_commands message, in the model's wheel order (driver convention)."""
+
+    stamp: float  # bag receive time [s] (commands carry no reliable header stamp)
+    kind: str  # 'velocity' [rad/s] or 'effort' [N·m]
+    values: np.ndarray
+
+
+def _stamp(header):
+    return header.stamp.sec + header.stamp.nanosec / NANOSECONDS
+
+
+class RecordingReader:
+    """Streams the wheel samples of a rosbag2 directory.
+
+    Parameters
+    ----------
+    path : str or Path
+        The recording directory (or a single .db3/.mcap file).
+    wheel_names : sequence of str
+        Joint names in model order.
+    joint_topic, command_topic : str
+        Topic names (CONTRACT.md defaults).
+
+    Attributes
+    ----------
+    counters : dict
+        ``joint_states``, ``wheel_commands`` (used), ``skipped_nan``, ``skipped_short``,
+        ``skipped_missing_joint``, ``skipped_no_values``.
+    """
+
+    def __init__(self, path, wheel_names, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMANDS):
+        from rosbags.rosbag2 import Reader
+        from rosbags.typesys import get_typestore, Stores
+
+        self.path = Path(path)
+        self.wheel_names = tuple(wheel_names)
+        self.joint_topic, self.command_topic = joint_topic, command_topic
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self.counters = dict.fromkeys(('joint_states', 'wheel_commands', 'skipped_nan',
+                                       'skipped_short', 'skipped_missing_joint',
+                                       'skipped_no_values'), 0)
+        if not self.path.exists():
+            msg = f'{self.path}: no such recording'
+            raise RecordingError(msg)
+        try:
+            self._reader = Reader(self.path)
+            self._reader.open()
+        except Exception as err:  # noqa: BLE001 - rosbags raises several types for broken bags
+            msg = f'{self.path}: not a readable rosbag2 recording ({type(err).__name__}: {err})'
+            raise RecordingError(msg) from err
+        topics = {c.topic: c for c in self._reader.connections}
+        if joint_topic not in topics:
+            self._reader.close()
+            msg = f'{self.path}: no {joint_topic} topic (topics: {sorted(topics)})'
+            raise RecordingError(msg)
+        self.connections = [c for c in self._reader.connections
+                            if c.topic in (joint_topic, command_topic)]
+        bad = [c.topic for c in self.connections if c.msgtype != JOINT_STATE_TYPE]
+        if bad:
+            self._reader.close()
+            msg = f'{self.path}: {bad[0]} is not {JOINT_STATE_TYPE}'
+            raise RecordingError(msg)
+        self.has_commands = command_topic in topics
+        self._index_cache = {}
+
+    @property
+    def duration(self):
+        """Recording length [s]."""
+        return self._reader.duration / NANOSECONDS
+
+    @property
+    def message_count(self):
+        """Messages on the topics read."""
+        return sum(c.msgcount for c in self.connections)
+
+    @property
+    def start_time(self):
+        """Bag time of the first message [s]."""
+        return self._reader.start_time / NANOSECONDS
+
+    def _indices(self, names):
+        key = tuple(names)
+        if key not in self._index_cache:
+            position = {name: i for i, name in enumerate(key)}
+            missing = [n for n in self.wheel_names if n not in position]
+            self._index_cache[key] = (None if missing else
+                                      np.array([position[n] for n in self.wheel_names]))
+        return self._index_cache[key]
+
+    def _pick(self, array, index, n_names):
+        if len(array) == 0:
+            return None
+        if len(array) < n_names:
+            self.counters['skipped_short'] += 1
+            return False
+        return np.asarray(array, dtype=float)[index]
+
+    def _joint_sample(self, msg):
+        index = self._indices(msg.name)
+        if index is None:
+            self.counters['skipped_missing_joint'] += 1
+            return None
+        n = len(msg.name)
+        position = self._pick(msg.position, index, n)
+        velocity = self._pick(msg.velocity, index, n)
+        effort = self._pick(msg.effort, index, n)
+        if position is False or velocity is False or effort is False:
+            return None
+        if position is None or velocity is None:
+            self.counters['skipped_no_values'] += 1
+            return None
+        if effort is None:
+            effort = np.full(len(self.wheel_names), math.nan)
+        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(velocity))):
+            self.counters['skipped_nan'] += 1
+            return None
+        self.counters['joint_states'] += 1
+        return JointSample(_stamp(msg.header), position, velocity, effort)
+
+    def _command_sample(self, msg, bag_time):
+        index = self._indices(msg.name)
+        if index is None:
+            self.counters['skipped_missing_joint'] += 1
+            return None
+        n = len(msg.name)
+        for kind, array in (('velocity', msg.velocity), ('effort', msg.effort)):
+            values = self._pick(array, index, n)
+            if values is False:
+                return None
+            if values is None:
+                continue
+            if not np.all(np.isfinite(values)):
+                self.counters['skipped_nan'] += 1
+                return None
+            self.counters['wheel_commands'] += 1
+            return CommandSample(bag_time, kind, values)
+        self.counters['skipped_no_values'] += 1
+        return None
+
+    def samples(self):
+        """Yield :class:`JointSample` and :class:`CommandSample` in recording order.
+
+        A recording that breaks part-way raises :class:`RecordingError` after the samples
+        read so far have been yielded.
+        """
+        deserialize = self.typestore.deserialize_cdr
+        try:
+            for connection, timestamp, raw in self._reader.messages(connections=self.connections):
+                try:
+                    msg = deserialize(raw, connection.msgtype)
+                except Exception:  # noqa: BLE001 - a corrupt message is skipped, not fatal
+                    self.counters['skipped_no_values'] += 1
+                    continue
+                if connection.topic == self.joint_topic:
+                    sample = self._joint_sample(msg)
+                else:
+                    sample = self._command_sample(msg, timestamp / NANOSECONDS)
+                if sample is not None:
+                    yield sample
+        except RecordingError:
+            raise
+        except Exception as err:  # noqa: BLE001
+            msg = f'{self.path}: recording broken part-way ({type(err).__name__}: {err})'
+            raise RecordingError(msg) from err
+
+    def decode_only(self):
+        """Read and deserialize every message of the topics, doing nothing else (benchmark baseline)."""
+        deserialize = self.typestore.deserialize_cdr
+        count = 0
+        for connection, _, raw in self._reader.messages(connections=self.connections):
+            deserialize(raw, connection.msgtype)
+            count += 1
+        return count
+
+    def close(self):
+        """Close the recording."""
+        self._reader.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

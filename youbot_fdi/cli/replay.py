@@ -1,0 +1,104 @@
+"""``youbot-fdi replay``: run the whole FDI pipeline offline over a rosbag2 recording."""
+from pathlib import Path
+import sys
+import time
+
+from youbot_fdi.bag.reader import JOINT_STATES, RecordingError, RecordingReader, WHEEL_COMMANDS
+from youbot_fdi.fdi.pipeline import FdiPipeline
+from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.model.profile import load_model, load_profile
+from youbot_fdi.settings import load_settings, settings_from_mapping
+
+NAME = 'replay'
+PROGRESS_MIN_MESSAGES = 20000  # show a progress bar from this many messages on
+PROGRESS_EVERY = 2000
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        NAME, help='run the FDI pipeline offline over a recording; write fault events',
+        description='Replay a rosbag2 recording (sqlite3 or mcap) through the same residual '
+                    'generator and decision the live nodes use, and write one JSON line per fault '
+                    'state change. Exit status 0 whether or not faults were found; 1 with a '
+                    'one-line reason on unreadable input (events found before are kept).')
+    parser.add_argument('bag', help='rosbag2 directory')
+    parser.add_argument('--params', help='parameter file from `youbot-fdi identify` (default: the '
+                                         'youbot profile and config/fdi.yaml)')
+    parser.add_argument('--events', required=True, help='write fault events here (JSON lines)')
+    parser.add_argument('--report', metavar='DIR', help='also write an HTML/PNG report here')
+    parser.add_argument('--joint-topic', default=JOINT_STATES)
+    parser.add_argument('--command-topic', default=WHEEL_COMMANDS)
+    parser.add_argument('--fdi-config', help='FDI settings YAML (default: config/fdi.yaml)')
+    parser.set_defaults(run=run)
+
+
+def build_pipeline(params_path=None, fdi_config=None, keep_frames=False):
+    """The model and pipeline a replay or node uses: identified params override the defaults."""
+    settings = load_settings(FdiSettings, 'fdi', fdi_config)
+    if params_path:
+        profile = load_profile(params_path)
+        overrides = dict(profile.fdi or {})
+        if overrides:
+            values = {**settings.__dict__, **overrides}
+            settings = settings_from_mapping(FdiSettings, values, source=str(params_path))
+        model = load_model(params_path)
+    else:
+        model = load_model(settings.profile)
+    return model, FdiPipeline(model, settings, keep_frames=keep_frames)
+
+
+def _progress(done, total, started):
+    fraction = done / total if total else 1.0
+    bar = '#' * int(30 * fraction)
+    rate = done / max(time.perf_counter() - started, 1e-9)
+    print(f'\r[{bar:<30}] {fraction:6.1%} {done}/{total} messages, {rate:,.0f}/s',
+          end='', file=sys.stderr, flush=True)
+
+
+def run(args):
+    model, pipeline = build_pipeline(args.params, args.fdi_config, keep_frames=bool(args.report))
+    events_path = Path(args.events)
+    events_path.parent.mkdir(parents=True, exist_ok=True)
+    found = []
+    error = None
+    started = time.perf_counter()
+    with events_path.open('w') as events_file:
+        try:
+            with RecordingReader(args.bag, model.wheel_names, args.joint_topic,
+                                 args.command_topic) as reader:
+                total = reader.message_count
+                show = total >= PROGRESS_MIN_MESSAGES and sys.stderr.isatty()
+                for done, sample in enumerate(reader.samples(), 1):
+                    for event in pipeline.feed(sample):
+                        events_file.write(event.to_json() + '\n')
+                        events_file.flush()
+                        found.append(event)
+                    if show and done % PROGRESS_EVERY == 0:
+                        _progress(done, total, started)
+                if show:
+                    _progress(total, total, started)
+                    print(file=sys.stderr)
+                counters = dict(reader.counters)
+                has_commands = reader.has_commands
+        except RecordingError as err:
+            error = err
+    elapsed = time.perf_counter() - started
+    if error is not None:
+        print(f'youbot-fdi replay: error: {error} ({len(found)} events kept in {events_path})',
+              file=sys.stderr)
+        return 1
+    alarms = [e for e in found if e.level == 'ERROR']
+    print(f'{args.bag}: {counters["joint_states"]} joint states, {counters["wheel_commands"]} '
+          f'commands in {elapsed:.2f} s; {len(alarms)} alarms, {len(found)} events -> {events_path}')
+    skipped = {k: v for k, v in counters.items() if k.startswith('skipped') and v}
+    if skipped:
+        print(f'skipped messages: {skipped}')
+    if not has_commands:
+        print(f'note: no {args.command_topic}: faults in the command path (runaway) cannot be seen')
+    for event in alarms:
+        print(f'  {event.stamp:.3f} {event.level} {event.wheel} {event.fault}')
+    if args.report:
+        from youbot_fdi.fdi.report import write_report
+        index = write_report(Path(args.report), model, pipeline, found, args.bag)
+        print(f'report: {index}')
+    return 0

@@ -1,0 +1,262 @@
+"""Decisions: residual alarms -> isolated wheel and fault type -> fault events with hysteresis.
+
+1. **Alarms.** A residual alarms when |r| > u for ``persistence`` consecutive samples and clears
+   after ``release`` samples under its bound.
+2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
+   analysis (``config/residuals/<model>.yaml``): a fault is a candidate when every alarming torque
+   residual is in its signature, and the candidates whose torque signature has the fewest silent
+   residuals win (a silent residual exonerates the faults it would see). A single alarming
+   ``torque_<w>`` isolates wheel w's actuator/friction class; all four point at a speed sensor,
+   and the ``observer_<w>`` residuals name which one.
+3. **Fault type** (CONTRACT.md vocabulary): ``encoder_freeze`` when the position stops following
+   the speed (``encoder_<w>``), ``comm_loss`` when the effort froze with it; ``stuck`` when the
+   wheel stands while its current is up; otherwise ``torque_loss`` or ``friction`` by which explains
+   the torque residual better over the last ``classification_window``: the measured torque (less
+   torque than the current implies) or the speed (more friction). ``runaway`` when only the command
+   path disagrees: the wheel does what its current says, not what it was told. The type named at
+   the alarm is refined once, when the window is full.
+4. **Events**: one per change of a component's (level, fault), stamped with the sample's header
+   stamp; ``OK`` when every alarm behind a fault has cleared, counting only samples in which the
+   wheel moved or carried current (a standing wheel proves nothing).
+"""
+from collections import deque
+from dataclasses import dataclass, field
+import json
+
+import numpy as np
+
+from youbot_fdi.faults import FaultKind
+from youbot_fdi.fdi.residuals import FAMILIES
+from youbot_fdi.structure.generate import wheel_suffix
+
+OK, WARN, ERROR = 'OK', 'WARN', 'ERROR'
+#: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
+EXCITED_TORQUE_SIGMAS = 3.0
+#: Fault types the classification window may still change after the alarm.
+REFINABLE = (FaultKind.TORQUE_LOSS.value, FaultKind.FRICTION.value, FaultKind.UNKNOWN.value)
+BASE = None  # the component of faults not tied to one wheel
+ACTUATOR_CLASS = ('actuator', 'friction')
+SENSOR_CLASS = 'velocity_sensor'
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """One change of a component's fault state (CONTRACT.md fault event)."""
+
+    stamp: float  # [s], header stamp of the sample that changed the state
+    level: str  # OK | WARN | ERROR
+    wheel: object  # joint name, or None when not tied to one wheel
+    fault: str  # FaultKind value
+    residuals: tuple = ()  # the alarming residuals behind it
+    detail: str = ''
+
+    def to_dict(self):
+        """The JSON object of an events file line."""
+        return {'stamp': round(self.stamp, 6), 'level': self.level, 'wheel': self.wheel,
+                'fault': self.fault, 'residuals': list(self.residuals), 'detail': self.detail}
+
+    def to_json(self):
+        """One line of an events file."""
+        return json.dumps(self.to_dict())
+
+
+@dataclass
+class _Component:
+    level: str = OK
+    fault: str = ''
+    since: float = 0.0
+    refined: bool = False
+    history: deque = field(default_factory=deque)
+
+
+class DecisionMaker:
+    """Turns :class:`~youbot_fdi.fdi.residuals.ResidualFrame` s into :class:`FaultEvent` s.
+
+    Parameters
+    ----------
+    wheel_names : sequence of str
+    settings : FdiSettings
+    residual_data : dict
+        The runtime residual set (``config/residuals/*.yaml``): ``faults`` and ``residuals`` with
+        their fault signatures.
+    """
+
+    def __init__(self, wheel_names, settings, residual_data):
+        self.wheel_names = list(wheel_names)
+        self.suffixes = [wheel_suffix(w) for w in self.wheel_names]
+        self.settings = settings
+        self.n = len(self.wheel_names)
+        self.signatures = self._signatures(residual_data)
+        shape = (len(FAMILIES), self.n)
+        self._above = np.zeros(shape, dtype=int)
+        self._below = np.zeros(shape, dtype=int)
+        self.alarm = np.zeros(shape, dtype=bool)
+        self.components = {w: _Component() for w in self.wheel_names}
+        self.components[BASE] = _Component()
+        self.samples = 0
+
+    def _signatures(self, residual_data):
+        """fault -> (kind, wheel index, set of torque-family wheel indices, observer indices)."""
+        index = {s: i for i, s in enumerate(self.suffixes)}
+        by_fault = {f: set() for f in residual_data['faults']}
+        for residual in residual_data['residuals']:
+            for fault in residual['faults']:
+                by_fault[fault].add(residual['name'])
+        table = {}
+        for fault, names in by_fault.items():
+            kind, _, suffix = fault.rpartition('_')
+            if suffix not in index:
+                continue
+            torque = {index[n.split('_', 1)[1]] for n in names if n.startswith('torque_')}
+            observer = {index[n.split('_', 1)[1]] for n in names if n.startswith('observer_')}
+            table[fault] = (kind, index[suffix], frozenset(torque), frozenset(observer))
+        return table
+
+    # ------------------------------------------------------------------ alarms
+    def _update_alarms(self, frame):
+        z = np.array([np.nan_to_num(np.abs(frame.values[f]) / frame.bounds[f]) for f in FAMILIES])
+        over = z > 1.0
+        # Only a wheel that moves or carries current can show that it is healthy again: a fault
+        # is not cleared because the wheel stood still.
+        excited = ((np.abs(frame.velocity) > self.settings.stuck_speed)
+                   | (np.abs(np.nan_to_num(frame.torque)) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
+        self._above = np.where(over, self._above + 1, 0)
+        self._below = np.where(over, 0, np.where(excited, self._below + 1, self._below))
+        self.alarm = np.where(self._above >= self.settings.persistence, True,
+                              np.where(self._below >= self.settings.release, False, self.alarm))
+        return z
+
+    def _family(self, name):
+        return self.alarm[FAMILIES.index(name)]
+
+    # ------------------------------------------------------------------ isolation
+    def _isolate_torque(self, fired, z_observer):
+        """Wheel diagnoses from the alarming torque residuals: {wheel index: structural class}."""
+        if not fired:
+            return {}
+        candidates = []
+        for kind, wheel, torque, _ in self.signatures.values():
+            if fired <= torque:
+                candidates.append((len(torque - fired), kind, wheel))
+        if not candidates:  # several wheels at once: each alarming wheel on its own
+            return {w: 'actuator' for w in fired}
+        best = min(c[0] for c in candidates)
+        winners = [(kind, wheel) for silent, kind, wheel in candidates if silent == best]
+        kinds = {kind for kind, _ in winners}
+        if kinds & set(ACTUATOR_CLASS):
+            return {wheel: 'actuator' for kind, wheel in winners if kind in ACTUATOR_CLASS}
+        sensors = [wheel for kind, wheel in winners if kind == SENSOR_CLASS]
+        observed = [w for w in sensors if self._family('observer')[w]]
+        wheel = max(observed or sensors, key=lambda w: z_observer[w])
+        return {wheel: SENSOR_CLASS}
+
+    def _name_actuator_fault(self, wheel, frame, component):
+        """stuck, torque_loss or friction for a wheel in the actuator/friction class."""
+        speed, torque = frame.velocity[wheel], frame.torque[wheel]
+        commanded = frame.command[wheel] if frame.command_mode == 'velocity' else np.inf
+        if abs(speed) < self.settings.stuck_speed and (abs(commanded) > self.settings.stuck_speed
+                                                       or abs(torque) > self.settings.torque_sigma * 10):
+            return FaultKind.STUCK
+        if len(component.history) < 2:
+            return FaultKind.UNKNOWN
+        data = np.array(component.history)
+        residual, measured, speeds = data[:, 0], data[:, 1], data[:, 2]
+        errors = []
+        for regressor in (measured, speeds):
+            denominator = float(regressor @ regressor)
+            gain = float(regressor @ residual) / denominator if denominator > 0 else 0.0
+            errors.append(float(np.sum((residual - gain * regressor) ** 2)))
+        return FaultKind.TORQUE_LOSS if errors[0] <= errors[1] else FaultKind.FRICTION
+
+    def _diagnose(self, frame, z):
+        """{wheel index: (FaultKind, residual names)} for this frame."""
+        diagnoses = {}
+        should_move = (np.abs(frame.command) > self.settings.stuck_speed
+                       if frame.command_mode == 'velocity' else np.zeros(self.n, dtype=bool))
+        frozen = frame.frozen >= self.settings.frozen_samples
+        encoder = self._family('encoder') | (frozen & should_move)
+        for w in np.flatnonzero(encoder):
+            frozen_effort = frame.effort_frozen[w] >= self.settings.frozen_samples
+            kind = FaultKind.COMM_LOSS if frozen_effort else FaultKind.ENCODER_FREEZE
+            diagnoses[int(w)] = (kind, (f'encoder_{self.suffixes[w]}',))
+        if diagnoses:  # a sensor fault explains the torque and observer residuals it disturbs
+            return diagnoses
+        fired = frozenset(int(w) for w in np.flatnonzero(self._family('torque')))
+        for wheel, kind in self._isolate_torque(fired, z[FAMILIES.index('observer')]).items():
+            names = tuple(f'torque_{self.suffixes[w]}' for w in sorted(fired))
+            if kind == SENSOR_CLASS:
+                diagnoses[wheel] = (FaultKind.UNKNOWN, names + (f'observer_{self.suffixes[wheel]}',))
+            else:
+                component = self.components[self.wheel_names[wheel]]
+                diagnoses[wheel] = (self._name_actuator_fault(wheel, frame, component), names)
+        for w in np.flatnonzero(self._family('command')):
+            if int(w) not in diagnoses and not fired:
+                diagnoses[int(w)] = (FaultKind.RUNAWAY, (f'command_{self.suffixes[w]}',))
+        return diagnoses
+
+    # ------------------------------------------------------------------ state and events
+    def _transition(self, key, level, fault, stamp, residuals=(), detail=''):
+        component = self.components[key]
+        if (component.level, component.fault) == (level, fault):
+            return None
+        if level != OK and component.level == OK:
+            component.since, component.refined = stamp, False
+            component.history.clear()
+        component.level, component.fault = level, fault
+        return FaultEvent(stamp, level, key, fault, tuple(residuals), detail)
+
+    def update(self, frame):
+        """Process one residual frame; returns the fault events it causes (usually none)."""
+        self.samples += 1
+        z = self._update_alarms(frame)
+        torque_index = FAMILIES.index('torque')
+        window = self.settings.classification_window
+        for w, name in enumerate(self.wheel_names):
+            history = self.components[name].history
+            history.append((frame.values['torque'][w], frame.torque[w], frame.velocity[w], frame.stamp))
+            while history and frame.stamp - history[0][3] > window:
+                history.popleft()
+        diagnoses = self._diagnose(frame, z)
+        events = []
+        for w, name in enumerate(self.wheel_names):
+            component = self.components[name]
+            if w in diagnoses:
+                kind, residuals = diagnoses[w]
+                if component.level == ERROR:
+                    # One episode, one type: named at the alarm, refined once when the window is
+                    # full (only between the types the window decides), then kept until OK.
+                    refinable = (component.fault in REFINABLE and kind.value in REFINABLE
+                                 and not component.refined
+                                 and frame.stamp - component.since >= window)
+                    if refinable:
+                        component.refined = True
+                    else:
+                        kind = FaultKind(component.fault)
+                detail = (f'|r|/u = {z[torque_index][w]:.1f} (torque), '
+                          f'{z[FAMILIES.index("command")][w]:.1f} (command)')
+                event = self._transition(name, ERROR, kind.value, frame.stamp, residuals, detail)
+            elif component.level != OK and not self._wheel_alarms(w):
+                event = self._transition(name, OK, component.fault, frame.stamp, (), 'residuals back in bounds')
+            else:
+                event = None
+            if event is not None:
+                events.append(event)
+        return events
+
+    def _wheel_alarms(self, w):
+        return bool(self.alarm[:, w].any())
+
+    def data_gap(self, last_stamp, resumed_stamp):
+        """/joint_states stopped for longer than comm_timeout: ERROR then OK on the base."""
+        gap = resumed_stamp - last_stamp
+        events = [self._transition(BASE, ERROR, FaultKind.COMM_LOSS.value,
+                                   last_stamp + self.settings.comm_timeout, (),
+                                   f'no /joint_states for {gap:.2f} s')]
+        if resumed_stamp is not None:
+            events.append(self._transition(BASE, OK, FaultKind.COMM_LOSS.value, resumed_stamp, (),
+                                           'data resumed'))
+        return [e for e in events if e is not None]
+
+    def states(self):
+        """Component -> (level, fault)."""
+        return {k: (c.level, c.fault) for k, c in self.components.items()}

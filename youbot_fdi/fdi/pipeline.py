@@ -1,0 +1,80 @@
+"""The FDI pipeline: residual generator + decision, fed sample by sample.
+
+The same object serves the offline replay and the live nodes, so a recording replayed offline
+gives the same decisions as the nodes gave live.
+"""
+from pathlib import Path
+
+import yaml
+
+from youbot_fdi.config_paths import config_dir
+from youbot_fdi.errors import ConfigError
+from youbot_fdi.fdi.decision import DecisionMaker
+from youbot_fdi.fdi.residuals import ResidualGenerator
+from youbot_fdi.fdi.settings import FdiSettings
+
+DEFAULT_RESIDUAL_MODEL = 'youbot'
+
+
+def load_residual_data(path=None):
+    """The runtime residual set written by ``youbot-fdi structure --write-residuals``."""
+    path = Path(path) if path else config_dir() / 'residuals' / f'{DEFAULT_RESIDUAL_MODEL}.yaml'
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        msg = f'{path}: cannot read the residual set: {err}'
+        raise ConfigError(msg) from err
+    if not isinstance(data, dict) or 'residuals' not in data or 'faults' not in data:
+        msg = f'{path}: not a residual set (needs faults and residuals)'
+        raise ConfigError(msg)
+    return data
+
+
+class FdiPipeline:
+    """Residuals and decisions for one base.
+
+    Parameters
+    ----------
+    model : PlatformModel
+    settings : FdiSettings
+    residual_data : dict, optional
+        Default: the shipped residual set of the youBot model.
+    keep_frames : bool
+        Keep every residual frame (for reports); off for live use.
+    """
+
+    def __init__(self, model, settings=FdiSettings(), residual_data=None, keep_frames=False):
+        self.model = model
+        self.settings = settings
+        residual_data = residual_data or load_residual_data(settings.residual_file or None)
+        self.generator = ResidualGenerator(model, settings)
+        self.decision = DecisionMaker(model.wheel_names, settings, residual_data)
+        self.frames = [] if keep_frames else None
+        self.last_frame = None
+        self._last_stamp = None
+
+    def command(self, sample):
+        """A /wheel_commands sample."""
+        self.generator.command(sample)
+
+    def joint_state(self, sample):
+        """A /joint_states sample; returns the fault events it causes."""
+        events = []
+        if self._last_stamp is not None and sample.stamp - self._last_stamp > self.settings.comm_timeout:
+            events += self.decision.data_gap(self._last_stamp, sample.stamp)
+        if self._last_stamp is None or sample.stamp > self._last_stamp:
+            self._last_stamp = sample.stamp
+        frame = self.generator.update(sample)
+        if frame is None:
+            return events
+        self.last_frame = frame
+        if self.frames is not None:
+            self.frames.append(frame)
+        return events + self.decision.update(frame)
+
+    def feed(self, sample):
+        """Either kind of sample (the reader's stream); returns events."""
+        if hasattr(sample, 'kind'):
+            self.command(sample)
+            return []
+        return self.joint_state(sample)

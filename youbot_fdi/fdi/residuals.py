@@ -1,0 +1,208 @@
+"""Residual generation: the observer and every residual the decision uses, one sample at a time.
+
+Inputs are what the robot publishes (CONTRACT.md, driver convention): /joint_states samples
+(position, velocity, effort from the measured current) and /wheel_commands. Internally everything
+is in the kinematic convention. Residual families, per wheel ``<w>``:
+
+``torque_<w>``
+    Measured wheel torque (mean over the sample interval) minus the torque the exactly discretised
+    dynamics need to explain the measured speed change: ``tau - Gamma^-1 (w_k - Phi w_{k-1})``.
+    This is the structural analysis' torque residual in discrete form; per wheel even with the dense
+    M. Sensitive to actuator and friction faults of wheel w and to every speed sensor.
+``observer_<w>``
+    Measured speed minus the speed predicted from the measured currents alone by the dynamic model
+    (the observer), with a slow correction (``observer_time_constant``). Sensitive to every actuator
+    and friction fault and to wheel w's sensor only.
+``command_<w>``
+    The command path. Velocity mode: measured speed minus the speed the firmware's PI loop would
+    reach from the commands (firmware emulation at its own period, with current limit). Current mode:
+    measured minus commanded effort. Sensitive to a wheel that does not do what it is told (runaway).
+``encoder_<w>``
+    Position increment minus speed times the interval: a reading that freezes while the wheel moves.
+
+Each residual comes with its bound u (see :mod:`youbot_fdi.fdi.settings`).
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from youbot_fdi.model.dynamics import zoh_discretize
+from youbot_fdi.structure.generate import wheel_suffix
+
+FAMILIES = ('torque', 'observer', 'command', 'encoder')
+DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
+
+
+@dataclass(frozen=True)
+class ResidualFrame:
+    """Residuals of one sample; per-family arrays of shape (n,) in wheel order."""
+
+    stamp: float  # [s]
+    values: dict  # family -> residual (n,)
+    bounds: dict  # family -> bound (n,)
+    velocity: np.ndarray  # measured, kinematic convention [rad/s]
+    torque: np.ndarray  # measured, kinematic convention [N·m] (NaN if not recorded)
+    command_mode: str  # 'velocity' or 'effort'
+    command: np.ndarray  # in force (after the watchdog), kinematic convention
+    frozen: np.ndarray  # consecutive samples with position and speed unchanged (n,) int
+    effort_frozen: np.ndarray  # consecutive samples with the effort unchanged too (n,) int
+
+    def names(self, wheel_names):
+        """Residual names in family-major order, e.g. ``torque_fl``."""
+        return [f'{family}_{wheel_suffix(w)}' for family in FAMILIES for w in wheel_names]
+
+    def flat(self):
+        """(values, bounds) as flat arrays in :meth:`names` order."""
+        return (np.concatenate([self.values[f] for f in FAMILIES]),
+                np.concatenate([self.bounds[f] for f in FAMILIES]))
+
+
+class ResidualGenerator:
+    """Stateful residual generator for one base.
+
+    Parameters
+    ----------
+    model : PlatformModel
+    settings : FdiSettings
+    """
+
+    def __init__(self, model, settings):
+        self.model = model
+        self.settings = settings
+        self.signs = model.kinematics.drive_signs
+        dyn = model.dynamics
+        self.n = dyn.n_wheels
+        self.mass_matrix = dyn.mass_matrix
+        self.friction = np.diag(dyn.friction_matrix)
+        self._a_v = -dyn.mass_inverse @ dyn.friction_matrix
+        self._b_v = dyn.mass_inverse
+        self._cache = {}
+        firmware, drive = model.firmware, model.drive
+        self.period = firmware.period
+        self._phi1, self._gamma1 = self._discrete(self.period)[:2]
+        self.kp, self.ki = firmware.velocity_kp, firmware.velocity_ki
+        self.torque_per_amp = drive.torque_per_amp
+        self.max_current = drive.max_current
+        self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
+        self.command_mode = 'velocity'
+        self.command_values = np.zeros(self.n)
+        self.command_stamp = -np.inf
+        self._last = None
+        self.skipped = 0
+
+    # ------------------------------------------------------------------ helpers
+    def _discrete(self, dt):
+        key = round(dt, DT_KEY_DECIMALS)
+        if key not in self._cache:
+            phi, gamma = zoh_discretize(self._a_v, self._b_v, key)
+            self._cache[key] = (phi, gamma, np.linalg.inv(gamma))
+        return self._cache[key]
+
+    def _coulomb(self, velocity):
+        return self.model.dynamics.coulomb_torque(velocity)
+
+    def command(self, sample):
+        """Take a /wheel_commands sample (:class:`~youbot_fdi.bag.reader.CommandSample`)."""
+        self.command_mode = sample.kind
+        self.command_values = self.signs * np.asarray(sample.values, dtype=float)
+        self.command_stamp = sample.stamp
+
+    def _command_in_force(self, stamp):
+        if stamp - self.command_stamp > self.settings.command_timeout:
+            return 'velocity', np.zeros(self.n)  # the shim's watchdog: zero speed
+        return self.command_mode, self.command_values
+
+    def reset(self):
+        """Forget the state (after a gap in the data)."""
+        self._last = None
+
+    def _start(self, stamp, position, velocity, torque):
+        mode, target = self._command_in_force(stamp)
+        self._observer = velocity.copy()
+        self._cmd_speed = velocity.copy()
+        current = np.nan_to_num(torque) / self.torque_per_amp
+        error = target - velocity if mode == 'velocity' else np.zeros(self.n)
+        self._cmd_integral = np.clip((current - self.kp * error) / self.ki if self.ki > 0 else 0.0,
+                                     -self._integral_limit, self._integral_limit)
+        self._frozen = np.zeros(self.n, dtype=int)
+        self._effort_frozen = np.zeros(self.n, dtype=int)
+        self._last = (stamp, position, velocity, torque)
+
+    def _predict_command_path(self, dt, mode, target, velocity):
+        """Advance the firmware-loop prediction over ``dt`` (velocity mode), at the firmware period."""
+        if mode != 'velocity':
+            self._cmd_speed = velocity.copy()
+            self._cmd_integral = np.zeros(self.n)
+            return
+        speed, integral = self._cmd_speed, self._cmd_integral
+        period, limit = self.period, self._integral_limit
+        for _ in range(max(1, int(round(dt / period)))):
+            error = target - speed
+            integral = np.clip(integral + error * period, -limit, limit)
+            current = np.clip(self.kp * error + self.ki * integral, -self.max_current, self.max_current)
+            speed = self._phi1 @ speed + self._gamma1 @ (current * self.torque_per_amp
+                                                        - self._coulomb(speed))
+        self._cmd_speed, self._cmd_integral = speed, integral
+
+    # ------------------------------------------------------------------ the update
+    def update(self, sample):
+        """Residuals for one /joint_states sample, or None (first sample, or after a gap/reorder)."""
+        stamp = sample.stamp
+        position = self.signs * sample.position
+        velocity = self.signs * sample.velocity
+        torque = self.signs * sample.effort
+        if self._last is None:
+            self._start(stamp, position, velocity, torque)
+            return None
+        last_stamp, last_position, last_velocity, last_torque = self._last
+        dt = stamp - last_stamp
+        if dt <= 0.0 or dt > self.settings.comm_timeout:
+            self.skipped += 1
+            self._start(stamp, position, velocity, torque)
+            return None
+        s = self.settings
+        phi, gamma, gamma_inv = self._discrete(dt)
+        mean_torque = 0.5 * (torque + last_torque)
+        mean_speed = 0.5 * (velocity + last_velocity)
+        coulomb = self._coulomb(mean_speed)
+
+        explained = gamma_inv @ (velocity - phi @ last_velocity) + coulomb
+        inertial = self.mass_matrix @ (velocity - last_velocity) / dt
+        torque_r = mean_torque - explained
+        torque_u = (s.torque_sigma + s.torque_inertia_fraction * np.abs(inertial)
+                    + s.torque_current_change_fraction * np.abs(torque - last_torque)
+                    + s.torque_friction_fraction * (np.abs(self.friction * mean_speed) + np.abs(coulomb)))
+
+        applied = np.nan_to_num(mean_torque)
+        self._observer = phi @ self._observer + gamma @ (applied - self._coulomb(self._observer))
+        observer_r = velocity - self._observer
+        observer_u = s.observer_sigma + s.observer_speed_fraction * np.abs(self._observer)
+        self._observer += (dt / s.observer_time_constant) * observer_r
+
+        mode, target = self._command_in_force(stamp)
+        before = self._cmd_speed.copy()
+        self._predict_command_path(dt, mode, target, velocity)
+        if mode == 'velocity':
+            command_r = velocity - self._cmd_speed
+            command_u = (s.command_sigma + s.command_speed_fraction * np.abs(self._cmd_speed)
+                         + s.command_transient_fraction * np.maximum(np.abs(target - self._cmd_speed),
+                                                                     np.abs(target - before)))
+        else:
+            command_r = torque - target
+            command_u = s.effort_sigma + s.effort_fraction * np.abs(target)
+
+        encoder_r = (position - last_position) - mean_speed * dt
+        encoder_u = s.encoder_sigma + s.encoder_speed_fraction * np.abs(mean_speed) * dt
+
+        unchanged = (position == last_position) & (velocity == last_velocity)
+        self._frozen = np.where(unchanged, self._frozen + 1, 0)
+        self._effort_frozen = np.where(unchanged & (torque == last_torque), self._effort_frozen + 1, 0)
+        self._last = (stamp, position, velocity, torque)
+        return ResidualFrame(
+            stamp=stamp,
+            values={'torque': torque_r, 'observer': observer_r, 'command': command_r,
+                    'encoder': encoder_r},
+            bounds={'torque': torque_u, 'observer': observer_u, 'command': command_u,
+                    'encoder': encoder_u},
+            velocity=velocity, torque=torque, command_mode=mode, command=target,
+            frozen=self._frozen.copy(), effort_frozen=self._effort_frozen.copy())
