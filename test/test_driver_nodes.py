@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ros_harness import Harness
-from tmcm_rig import forward_command, new_channel
+from tmcm_rig import forward_command, new_channel, NOISE_FREE
 from youbot_fdi.model import load_model
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402  (after importorskip in ros_harness)
@@ -23,8 +23,9 @@ def sim():
     harness = Harness()
     channel = new_channel()
     overrides = [Parameter('can_channel', value=channel)]
+    noise_free = [Parameter(name, value=value) for name, value in NOISE_FREE.items()]
     harness.base_node = harness.add(VirtualYoubotNode(context=harness.context,
-                                                      parameter_overrides=overrides))
+                                                      parameter_overrides=overrides + noise_free))
     harness.add(DriverShimNode(context=harness.context, parameter_overrides=overrides))
     harness.states, harness.diagnostics = [], []
     harness.probe.create_subscription(JointState, '/joint_states', harness.states.append, SENSOR_QOS)

@@ -9,8 +9,12 @@ def new_channel():
     return f'test-{uuid.uuid4()}'
 
 
+#: Unit and sign checks compare to within a count of quantisation: no measurement noise.
+NOISE_FREE = {'current_noise': 0.0, 'velocity_noise': 0.0}
+
+
 def make_rig(profile='youbot', **base_settings):
-    return LockstepBase(load_model(profile), **base_settings)
+    return LockstepBase(load_model(profile), **{**NOISE_FREE, **base_settings})
 
 
 def forward_command(model, speed=0.3):

@@ -86,9 +86,10 @@ class RecordingReader:
             msg = f'{self.path}: not a readable rosbag2 recording ({type(err).__name__}: {err})'
             raise RecordingError(msg) from err
         topics = {c.topic: c for c in self._reader.connections}
-        if joint_topic not in topics:
+        if joint_topic not in topics or topics[joint_topic].msgcount == 0:
             self._reader.close()
-            msg = f'{self.path}: no {joint_topic} topic (topics: {sorted(topics)})'
+            with_data = sorted(t for t, c in topics.items() if c.msgcount)
+            msg = f'{self.path}: no {joint_topic} messages (topics with data: {with_data})'
             raise RecordingError(msg)
         self.connections = [c for c in self._reader.connections
                             if c.topic in (joint_topic, command_topic)]

@@ -299,5 +299,7 @@ def profile_to_dict(profile):
                      'velocity_kp': profile.firmware.velocity_kp,
                      'velocity_ki': profile.firmware.velocity_ki,
                      'loop': profile.firmware.loop.value},
+        **({'fdi': dict(profile.fdi)} if profile.fdi else {}),
+        **({'identification': dict(profile.identification)} if profile.identification else {}),
     }
 

@@ -1,0 +1,197 @@
+"""The FDI core on simulated recordings made through the whole shim path (velocity and effort mode)."""
+import json
+import math
+import shutil
+import sqlite3
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from youbot_fdi.bag import RecordingError, RecordingReader, RecordingWriter
+from youbot_fdi.cli.main import main
+from youbot_fdi.cli.replay import build_pipeline
+from youbot_fdi.config_paths import config_dir
+from youbot_fdi.model import load_model, load_profile
+from youbot_fdi.model.scenario import DriveScript
+from youbot_fdi.recordings import DEFAULT_START_STAMP, record_drive
+
+SCRIPT = DriveScript.from_config(yaml.safe_load((config_dir() / 'demo.yaml').read_text())['segments'])
+#: fault, wheel, injection time [s], time it becomes observable [s] (runaway: the next command change)
+CASES = [('torque_loss', 'wheel_joint_fr', 3.0, 3.0), ('friction', 'wheel_joint_bl', 5.0, 5.0),
+         ('stuck', 'wheel_joint_br', 7.0, 7.0), ('runaway', 'wheel_joint_fl', 10.3, 10.5),
+         ('encoder_freeze', 'wheel_joint_fl', 5.5, 5.5), ('comm_loss', 'wheel_joint_fr', 9.0, 9.0)]
+MAX_DELAY = 0.1  # [s] the issue's median target, held here for every case
+
+
+@pytest.fixture(scope='module')
+def model():
+    return load_model('youbot')
+
+
+@pytest.fixture(scope='module')
+def recordings(tmp_path_factory, model):
+    root = tmp_path_factory.mktemp('recordings')
+    made = {'nominal': record_drive(root / 'nominal', model, SCRIPT)}
+    for fault, wheel, at, _ in CASES:
+        made[fault] = record_drive(root / fault, model, SCRIPT, fault=fault, wheel=wheel, fault_time=at)
+    return made
+
+
+CLASSIFICATION_WINDOW = 0.5  # [s] config/fdi.yaml
+
+
+def settled(alarms):
+    """The name of the first fault episode once the classification window has refined it."""
+    first = alarms[0]
+    episode = [e for e in alarms if e.wheel == first.wheel]
+    refined = [e for e in episode if e.stamp - first.stamp <= CLASSIFICATION_WINDOW + 0.05]
+    return refined[-1].fault
+
+
+def replay(path, params=None):
+    _, pipeline = build_pipeline(params)
+    events = []
+    with RecordingReader(path, pipeline.model.wheel_names) as reader:
+        for sample in reader.samples():
+            events += pipeline.feed(sample)
+    return events
+
+
+def test_nominal_drive_raises_no_alarm(recordings):
+    assert replay(recordings['nominal'].path) == []
+
+
+@pytest.mark.parametrize('fault, wheel, at, observable', CASES)
+def test_each_fault_is_detected_isolated_and_named(recordings, fault, wheel, at, observable):
+    events = replay(recordings[fault].path)
+    alarms = [e for e in events if e.level == 'ERROR']
+    assert alarms, f'{fault} not detected'
+    first = alarms[0]
+    assert first.wheel == wheel
+    assert {e.wheel for e in alarms} == {wheel}  # nothing else blamed
+    assert settled(alarms) == fault
+    delay = first.stamp - (DEFAULT_START_STAMP + observable)
+    assert -0.005 <= delay <= MAX_DELAY, f'delay {delay:.3f} s'
+
+
+def test_effort_mode_recordings(tmp_path, model):
+    nominal = record_drive(tmp_path / 'nominal', model, SCRIPT, mode='effort')
+    assert replay(nominal.path) == []
+    faulty = record_drive(tmp_path / 'weak', model, SCRIPT, mode='effort', fault='torque_loss',
+                          wheel='wheel_joint_bl', fault_time=3.0)
+    alarms = [e for e in replay(faulty.path) if e.level == 'ERROR']
+    assert alarms and alarms[0].wheel == 'wheel_joint_bl' and settled(alarms) == 'torque_loss'
+    runaway = record_drive(tmp_path / 'runaway', model, SCRIPT, mode='effort', fault='runaway',
+                           wheel='wheel_joint_fr', fault_time=1.9)
+    alarms = [e for e in replay(runaway.path) if e.level == 'ERROR']
+    assert alarms and alarms[0].wheel == 'wheel_joint_fr' and settled(alarms) == 'runaway'
+    assert alarms[0].stamp - (DEFAULT_START_STAMP + 2.0) <= MAX_DELAY
+
+
+def test_replay_cli_writes_contract_events(recordings, tmp_path):
+    events_file = tmp_path / 'events.jsonl'
+    status = main(['replay', str(recordings['stuck'].path), '--events', str(events_file),
+                   '--report', str(tmp_path / 'report')])
+    assert status == 0
+    lines = [json.loads(line) for line in events_file.read_text().splitlines()]
+    assert lines[0]['level'] == 'ERROR' and lines[0]['wheel'] == 'wheel_joint_br'
+    assert lines[0]['fault'] == 'stuck' and isinstance(lines[0]['stamp'], float)
+    assert (tmp_path / 'report' / 'index.html').read_text().count('<tr>') == 1 + len(lines)
+    assert (tmp_path / 'report' / 'residuals_torque.png').stat().st_size > 10_000
+
+
+def test_replay_is_deterministic_and_matches_the_pipeline_objects(recordings):
+    first = [e.to_dict() for e in replay(recordings['friction'].path)]
+    second = [e.to_dict() for e in replay(recordings['friction'].path)]
+    assert first == second and first
+
+
+def test_unreadable_recordings_give_a_one_line_reason(tmp_path, capsys):
+    events = tmp_path / 'e.jsonl'
+    assert main(['replay', str(tmp_path / 'missing'), '--events', str(events)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'no such recording' in err[0]
+    (tmp_path / 'junk').mkdir()
+    (tmp_path / 'junk' / 'metadata.yaml').write_text('rosbag2_bagfile_information: [broken')
+    assert main(['replay', str(tmp_path / 'junk'), '--events', str(events)]) == 1
+    assert 'not a readable rosbag2 recording' in capsys.readouterr().err
+
+
+def test_recording_without_joint_states_is_refused(tmp_path, model):
+    with RecordingWriter(tmp_path / 'cmds', model.wheel_names) as writer:
+        writer.cmd_vel(1.0, (0.1, 0.0, 0.0))
+    with pytest.raises(RecordingError, match='no /joint_states'):
+        RecordingReader(tmp_path / 'cmds', model.wheel_names)
+
+
+def test_bad_messages_are_skipped_and_counted(tmp_path, model):
+    names = list(model.wheel_names)
+    path = tmp_path / 'bad'
+    with RecordingWriter(path, names, storage='mcap') as writer:
+        for k in range(20):
+            writer.joint_state(10 + 0.01 * k, [0.0] * 4, [0.0] * 4, [0.0] * 4)
+        writer.joint_state(10.3, [0.0, math.nan, 0.0, 0.0], [0.0] * 4, [0.0] * 4)
+        writer.joint_state(10.31, [0.0] * 3, [0.0] * 4, [0.0] * 4)
+        writer.names = ['a', 'b', 'c', 'd']
+        writer.joint_state(10.32, [0.0] * 4, [0.0] * 4, [0.0] * 4)
+    with RecordingReader(path, names) as reader:
+        samples = list(reader.samples())
+        counters = reader.counters
+    assert len(samples) == 20
+    assert counters['skipped_nan'] == 1 and counters['skipped_short'] == 1
+    assert counters['skipped_missing_joint'] == 1
+
+
+def test_a_recording_broken_part_way_keeps_the_events_found(recordings, tmp_path, capsys):
+    broken = tmp_path / 'broken'
+    shutil.copytree(recordings['stuck'].path, broken)
+    database = next(broken.glob('*.db3'))
+    with sqlite3.connect(database) as db:  # corrupt the second half of the messages
+        db.execute('UPDATE messages SET data = x\'00\' WHERE id > (SELECT MAX(id) FROM messages) * 3 / 4')
+    events = tmp_path / 'events.jsonl'
+    status = main(['replay', str(broken), '--events', str(events)])
+    # Corrupt messages are skipped and counted; events up to then (the stuck wheel at 7 s) are kept.
+    assert status == 0
+    lines = events.read_text().splitlines()
+    assert lines and json.loads(lines[0])['fault'] == 'stuck'
+    assert 'skipped messages' in capsys.readouterr().out
+
+
+def test_data_gap_is_comm_loss_of_the_base(tmp_path, model):
+    path = tmp_path / 'gap'
+    with RecordingWriter(path, model.wheel_names) as writer:
+        for k in range(200):
+            stamp = 100 + 0.01 * k + (0.5 if k >= 100 else 0.0)
+            writer.joint_state(stamp, [0.0] * 4, [0.0] * 4, [0.0] * 4)
+    events = replay(path)
+    assert [(e.level, e.wheel, e.fault) for e in events] == [('ERROR', None, 'comm_loss'),
+                                                             ('OK', None, 'comm_loss')]
+    assert events[0].stamp == pytest.approx(100.99 + 0.2)
+
+
+def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp_path, capsys):
+    params = tmp_path / 'params.yaml'
+    assert main(['identify', str(recordings['nominal'].path), '--output', str(params), '--no-gains',
+                 '--plot', str(tmp_path / 'sweep.png')]) == 0
+    out = capsys.readouterr().out
+    assert 'NRMSE per wheel' in out and 'friction sweep' in out
+    profile = load_profile(params)
+    np.testing.assert_allclose(profile.dynamics.viscous_friction, 0.035, rtol=0.05)
+    assert set(profile.fdi) == {'torque_sigma', 'observer_sigma', 'encoder_sigma'}
+    assert profile.identification['friction_sweep']['rmse']
+    assert (tmp_path / 'sweep.png').stat().st_size > 5_000
+    # The identified parameters still detect and isolate, and stay quiet on nominal data.
+    assert replay(recordings['nominal'].path, params) == []
+    alarms = [e for e in replay(recordings['stuck'].path, params) if e.level == 'ERROR']
+    assert alarms[0].wheel == 'wheel_joint_br' and alarms[0].fault == 'stuck'
+
+
+def test_replay_cli_runs_as_a_process(recordings, tmp_path):
+    result = subprocess.run([sys.executable, '-m', 'youbot_fdi.cli.main', 'replay',
+                             str(recordings['friction'].path), '--events', str(tmp_path / 'e.jsonl')],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert 'wheel_joint_bl friction' in result.stdout

@@ -1,0 +1,64 @@
+"""``youbot-fdi identify``: model parameters and residual noise floors from a nominal recording."""
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from youbot_fdi.fdi.identify import identify
+from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.model.profile import load_model, profile_to_dict
+from youbot_fdi.settings import load_settings
+
+NAME = 'identify'
+HEADER = ('# Identified by `youbot-fdi identify`: a parameter profile (config/profiles schema) plus\n'
+          '# learned FDI noise floors (fdi) and the fit record (identification).\n'
+          '# Use it with: youbot-fdi replay BAG --params THIS_FILE\n')
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        NAME, help='identify model parameters from a nominal recording',
+        description='Fit inertias, viscous and Coulomb friction (least squares), the firmware PI '
+                    'gains (velocity mode), run the report\'s friction sweep, report the fit (NRMSE '
+                    'per wheel) and learn the residual noise floors the thresholds use. Writes a '
+                    'parameter file for `replay --params`.')
+    parser.add_argument('bag', help='rosbag2 directory of nominal (fault-free) driving')
+    parser.add_argument('--output', required=True, help='parameter file to write (YAML)')
+    parser.add_argument('--profile', default='youbot', help='prior profile (default: youbot)')
+    parser.add_argument('--no-gains', action='store_true', help='do not fit the firmware PI gains')
+    parser.add_argument('--plot', metavar='FILE', help='write the friction sweep (Fig. 5.10) here')
+    parser.set_defaults(run=run)
+
+
+def run(args):
+    settings = load_settings(FdiSettings, 'fdi')
+    result = identify(args.bag, load_model(args.profile), settings, fit_gains=not args.no_gains)
+    profile = result.profile
+    data = profile_to_dict(profile)
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(HEADER + yaml.safe_dump(data, sort_keys=False, width=100))
+    dyn = profile.dynamics
+    print(f'{args.bag}: {result.info["samples"]} samples over {result.info["duration_s"]:.1f} s')
+    print(f'  mass {dyn.mass:.3g} kg, J_z {dyn.yaw_inertia:.3g} kg·m², J_w {dyn.wheel_inertia[0]:.3g} kg·m²'
+          f'  (torque fit R² {result.info["torque_fit_r_squared"]:.4f})')
+    print('  viscous friction D [N·m·s/rad]: ' + ', '.join(f'{v:.4f}' for v in dyn.viscous_friction))
+    print('  Coulomb friction [N·m]: ' + ', '.join(f'{v:.4f}' for v in dyn.coulomb_friction))
+    print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
+          f'ki {profile.firmware.velocity_ki:.3g} A/rad')
+    best = result.sweep[0][int(np.argmin(result.sweep[1]))]
+    print(f'  friction sweep (report Fig. 5.10): best D = {best:.3f} on the grid '
+          f'{result.sweep[0][0]:.3f}..{result.sweep[0][-1]:.3f}')
+    names = ', '.join(f'{v:.2%}' for v in result.nrmse_currents)
+    print(f'  NRMSE per wheel, predicted from currents: {names}')
+    if result.nrmse_commands is not None:
+        print('  NRMSE per wheel, predicted from commands: '
+              + ', '.join(f'{v:.2%}' for v in result.nrmse_commands))
+    verdict = 'holds' if np.all(result.nrmse_currents < 0.01) else 'does not hold'
+    print(f'  the report\'s "error below 1 %" {verdict} for this recording')
+    print('  noise floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()))
+    if args.plot:
+        from youbot_fdi.fdi.report import plot_friction_sweep
+        plot_friction_sweep(result.sweep, Path(args.plot))
+        print(f'friction sweep figure: {args.plot}')
+    print(f'parameters: {args.output}')
+    return 0

@@ -1,0 +1,260 @@
+"""Identify the model's parameters from a nominal recording (either control mode).
+
+1. **Dynamics by linear least squares.** ``tau = M(m, J_z, J_w) a + D w + F_c tanh(w / v_s)`` is
+   linear in (m, J_z, J_w, D_i, F_c,i) because M = m P_xy + J_z P_z + J_w I. Speeds are
+   differentiated and torques smoothed with the same Savitzky-Golay filter; parameters are bounded
+   (>= 0) and pulled gently towards the prior profile where the drive does not excite them (a drive
+   without rotation says nothing about J_z).
+2. **The report's friction sweep** (Fig. 5.10): the open-loop model driven by the measured currents
+   for D on a grid, RMSE against the measured speeds.
+3. **Firmware PI gains** (velocity-mode recordings): the command-path prediction fitted to the
+   measured speeds (Nelder-Mead on log gains).
+4. **Fit quality**: NRMSE per wheel (RMSE / range of the measured speed) of the current-driven and
+   the command-driven predictions, to test the report's "< 1 %" claim.
+5. **Noise floors**: the residual generator run over the recording with the identified model; each
+   residual family's floor (``*_sigma``) is what keeps the nominal recording inside its bounds,
+   times a safety factor. The thresholds use them.
+"""
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.optimize
+import scipy.signal
+
+from youbot_fdi.bag.reader import RecordingReader
+from youbot_fdi.errors import FdiError
+from youbot_fdi.fdi.residuals import ResidualGenerator
+from youbot_fdi.model.dynamics import zoh_discretize
+from youbot_fdi.model.profile import ModelProfile, PlatformModel
+
+SAVGOL_WINDOW = 9  # samples
+SAVGOL_ORDER = 2
+PRIOR_WEIGHT = 1e-3  # relative weight of the pull towards the prior profile
+SWEEP = np.arange(0.010, 0.0451, 0.005)  # report Fig. 5.10 grid [N·m·s/rad]
+SAFETY = 1.5  # noise floors = safety * what the nominal recording needs
+FLOOR_FRACTION = 0.25  # never below this fraction of the configured floor
+MIN_SAMPLES = 50
+SIGMA_FAMILIES = {'torque': 'torque_sigma', 'observer': 'observer_sigma', 'encoder': 'encoder_sigma'}
+
+
+class IdentificationError(FdiError):
+    """The recording cannot identify the model (too short, no effort, no motion)."""
+
+
+@dataclass(frozen=True)
+class RecordingArrays:
+    """A recording as arrays, kinematic convention, SI."""
+
+    time: np.ndarray  # (k,) header stamps [s]
+    position: np.ndarray  # (k, n)
+    velocity: np.ndarray  # (k, n)
+    torque: np.ndarray  # (k, n)
+    commands: list  # CommandSample list (driver convention, as recorded)
+
+
+def read_arrays(path, model, joint_topic='/joint_states', command_topic='/wheel_commands'):
+    """Read a recording into :class:`RecordingArrays`."""
+    signs = model.kinematics.drive_signs
+    rows, commands = [], []
+    with RecordingReader(path, model.wheel_names, joint_topic, command_topic) as reader:
+        for sample in reader.samples():
+            if hasattr(sample, 'kind'):
+                commands.append(sample)
+            else:
+                rows.append((sample.stamp, signs * sample.position, signs * sample.velocity,
+                             signs * sample.effort))
+    if len(rows) < MIN_SAMPLES:
+        msg = f'{path}: {len(rows)} usable joint states; identification needs at least {MIN_SAMPLES}'
+        raise IdentificationError(msg)
+    rows.sort(key=lambda r: r[0])
+    time = np.array([r[0] for r in rows])
+    return RecordingArrays(time, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
+                           np.array([r[3] for r in rows]), commands)
+
+
+def _smooth(values, dt, deriv=0):
+    """Savitzky-Golay smoothing (or derivative) along time; the window shrinks for short data."""
+    window = min(SAVGOL_WINDOW, len(values) if len(values) % 2 else len(values) - 1)
+    return scipy.signal.savgol_filter(values, window, SAVGOL_ORDER, deriv=deriv, delta=dt, axis=0)
+
+
+def fit_dynamics(arrays, model):
+    """Least-squares (m, J_z, J_w, D, F_c); returns (DynamicParameters, fit info dict)."""
+    if not np.all(np.isfinite(arrays.torque)):
+        msg = 'the recording has no effort (measured current) on every sample; it is needed'
+        raise IdentificationError(msg)
+    dt = float(np.median(np.diff(arrays.time)))
+    acceleration = _smooth(arrays.velocity, dt, deriv=1)
+    speed, torque = _smooth(arrays.velocity, dt), _smooth(arrays.torque, dt)
+    forward = model.kinematics.forward_matrix
+    p_xy = forward.T @ np.diag([1.0, 1.0, 0.0]) @ forward
+    p_z = forward.T @ np.diag([0.0, 0.0, 1.0]) @ forward
+    k, n = speed.shape
+    prior = model.dynamics.parameters
+    scale = prior.coulomb_velocity_scale
+    columns = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
+    for j in range(n):
+        mask = np.zeros((k, n))
+        mask[:, j] = 1.0
+        columns.append((speed * mask).ravel())
+    for j in range(n):
+        mask = np.zeros((k, n))
+        mask[:, j] = 1.0
+        columns.append((np.tanh(speed / scale) * mask).ravel())
+    design = np.column_stack(columns)
+    target = torque.ravel()
+    prior_values = np.array([prior.mass, prior.yaw_inertia, float(np.mean(prior.wheel_inertia)),
+                             *prior.viscous_friction, *prior.coulomb_friction])
+    column_scale = np.linalg.norm(design, axis=0) + 1e-12
+    weight = PRIOR_WEIGHT * np.linalg.norm(target)
+    prior_rows = np.diag(weight * column_scale / np.maximum(column_scale.max(), 1e-12))
+    system = np.vstack([design / column_scale, prior_rows])
+    rhs = np.concatenate([target, prior_rows @ (prior_values * column_scale)])
+    lower = np.zeros(design.shape[1])
+    lower[:3] = 1e-9
+    solution = scipy.optimize.lsq_linear(system, rhs, bounds=(lower, np.inf)).x / column_scale
+    fitted = design @ solution
+    r_squared = 1.0 - np.sum((target - fitted) ** 2) / max(np.sum((target - target.mean()) ** 2), 1e-12)
+    params = replace(prior, mass=float(solution[0]), yaw_inertia=float(solution[1]),
+                     wheel_inertia=(float(solution[2]),) * n,
+                     viscous_friction=tuple(float(v) for v in solution[3:3 + n]),
+                     coulomb_friction=tuple(float(v) for v in solution[3 + n:3 + 2 * n]))
+    return params, {'torque_fit_r_squared': float(r_squared), 'sample_period': dt}
+
+
+def simulate_from_currents(model, arrays):
+    """Open-loop wheel speeds predicted from the measured torques (the report's §5.2.2 model)."""
+    dyn = model.dynamics
+    a_v, b_v = -dyn.mass_inverse @ dyn.friction_matrix, dyn.mass_inverse
+    predicted = np.empty_like(arrays.velocity)
+    predicted[0] = arrays.velocity[0]
+    cache = {}
+    for k in range(1, len(arrays.time)):
+        dt = round(arrays.time[k] - arrays.time[k - 1], 4)
+        if dt not in cache:
+            cache[dt] = zoh_discretize(a_v, b_v, dt)
+        phi, gamma = cache[dt]
+        applied = 0.5 * (arrays.torque[k] + arrays.torque[k - 1])
+        predicted[k] = phi @ predicted[k - 1] + gamma @ (applied - dyn.coulomb_torque(predicted[k - 1]))
+    return predicted
+
+
+def simulate_from_commands(model, arrays):
+    """Wheel speeds predicted from the velocity commands through the firmware loop (§5.2.3)."""
+    from youbot_fdi.fdi.settings import FdiSettings
+    generator = ResidualGenerator(model, FdiSettings())
+    predicted = np.empty_like(arrays.velocity)
+    commands = sorted(arrays.commands, key=lambda c: c.stamp)
+    index = 0
+    for k, stamp in enumerate(arrays.time):
+        while index < len(commands) and commands[index].stamp <= stamp:
+            generator.command(commands[index])
+            index += 1
+        if k == 0:
+            generator._start(stamp, arrays.position[0], arrays.velocity[0], arrays.torque[0])
+            predicted[0] = arrays.velocity[0]
+            continue
+        mode, target = generator._command_in_force(stamp)
+        generator._predict_command_path(stamp - arrays.time[k - 1], mode, target, arrays.velocity[k])
+        predicted[k] = generator._cmd_speed
+    return predicted
+
+
+def nrmse(measured, predicted):
+    """Per-wheel RMSE over the range of the measured signal [-]."""
+    span = np.ptp(measured, axis=0)
+    return np.sqrt(np.mean((measured - predicted) ** 2, axis=0)) / np.where(span > 0, span, 1.0)
+
+
+def friction_sweep(model, arrays, values=SWEEP):
+    """RMSE [rad/s] of the current-driven prediction for each viscous friction in ``values``."""
+    rmse = []
+    for value in values:
+        params = replace(model.dynamics.parameters, viscous_friction=(float(value),) * model.dynamics.n_wheels)
+        trial = PlatformModel(replace(model.profile, dynamics=params))
+        predicted = simulate_from_currents(trial, arrays)
+        rmse.append(float(np.sqrt(np.mean((arrays.velocity - predicted) ** 2))))
+    return np.asarray(values, dtype=float), np.array(rmse)
+
+
+def fit_firmware_gains(model, arrays):
+    """Velocity PI gains that make the command-path prediction match; None without velocity commands."""
+    if not any(c.kind == 'velocity' for c in arrays.commands):
+        return None
+    start = np.log([model.firmware.velocity_kp, model.firmware.velocity_ki])
+
+    def cost(log_gains):
+        kp, ki = np.exp(log_gains)
+        trial = PlatformModel(replace(model.profile, firmware=replace(model.firmware, velocity_kp=kp,
+                                                                      velocity_ki=ki)))
+        return float(np.mean((arrays.velocity - simulate_from_commands(trial, arrays)) ** 2))
+
+    result = scipy.optimize.minimize(cost, start, method='Nelder-Mead',
+                                     options={'xatol': 0.02, 'fatol': 1e-6, 'maxfev': 60})
+    kp, ki = np.exp(result.x)
+    return replace(model.firmware, velocity_kp=float(kp), velocity_ki=float(ki))
+
+
+def noise_floors(model, arrays, settings):
+    """Per residual family, the floor that keeps this (nominal) recording inside its bounds."""
+    generator = ResidualGenerator(model, settings)
+    needed = {family: 0.0 for family in SIGMA_FAMILIES}
+    commands = sorted(arrays.commands, key=lambda c: c.stamp)
+    index = 0
+    from youbot_fdi.bag.reader import JointSample
+    signs = model.kinematics.drive_signs
+    for k, stamp in enumerate(arrays.time):
+        while index < len(commands) and commands[index].stamp <= stamp:
+            generator.command(commands[index])
+            index += 1
+        frame = generator.update(JointSample(stamp, signs * arrays.position[k],
+                                             signs * arrays.velocity[k], signs * arrays.torque[k]))
+        if frame is None:
+            continue
+        for family, key in SIGMA_FAMILIES.items():
+            sigma = getattr(settings, key)
+            excess = np.abs(frame.values[family]) - (frame.bounds[family] - sigma)
+            needed[family] = max(needed[family], float(np.nanmax(excess)))
+    return {SIGMA_FAMILIES[f]: max(SAFETY * v, FLOOR_FRACTION * getattr(settings, SIGMA_FAMILIES[f]))
+            for f, v in needed.items()}
+
+
+@dataclass(frozen=True)
+class IdentificationResult:
+    """What ``identify`` found."""
+
+    profile: ModelProfile
+    nrmse_currents: np.ndarray  # (n,) current-driven prediction
+    nrmse_commands: object  # (n,) command-driven prediction, or None
+    sweep: tuple  # (values, rmse)
+    fdi: dict  # learned noise floors
+    info: dict
+
+
+def identify(path, prior_model, settings, fit_gains=True):
+    """Identify a model from the recording at ``path``, starting from ``prior_model``."""
+    arrays = read_arrays(path, prior_model)
+    dynamics, info = fit_dynamics(arrays, prior_model)
+    model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))
+    firmware = fit_firmware_gains(model, arrays) if fit_gains else None
+    if firmware is not None:
+        model = PlatformModel(replace(model.profile, firmware=firmware))
+    sweep = friction_sweep(model, arrays)
+    nrmse_currents = nrmse(arrays.velocity, simulate_from_currents(model, arrays))
+    nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays))
+                      if firmware is not None else None)
+    fdi = noise_floors(model, arrays, settings)
+    info.update({'recording': str(path), 'samples': int(len(arrays.time)),
+                 'duration_s': float(arrays.time[-1] - arrays.time[0]),
+                 'commands': len(arrays.commands)})
+    identification = {
+        **info,
+        'nrmse_from_currents': [round(float(v), 5) for v in nrmse_currents],
+        'nrmse_from_commands': (None if nrmse_commands is None
+                                else [round(float(v), 5) for v in nrmse_commands]),
+        'friction_sweep': {'viscous_friction': [round(float(v), 4) for v in sweep[0]],
+                           'rmse': [round(float(v), 5) for v in sweep[1]]},
+    }
+    profile = replace(model.profile, name=f'{prior_model.profile.name}_identified',
+                      description=f'identified from {path}', fdi=fdi, identification=identification)
+    return IdentificationResult(profile, nrmse_currents, nrmse_commands, sweep, fdi, info)

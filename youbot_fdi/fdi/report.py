@@ -1,0 +1,129 @@
+"""Replay reports: PNG figures in the spirit of the report's Figs. 5.10-5.19 and an HTML index.
+
+matplotlib is an optional extra (``plot``); without it the report has the tables only.
+"""
+import html
+
+import numpy as np
+
+from youbot_fdi.fdi.residuals import FAMILIES
+from youbot_fdi.structure.generate import wheel_suffix
+
+
+def _pyplot():
+    try:
+        import matplotlib
+        matplotlib.use('Agg')
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
+def plot_friction_sweep(sweep, path):
+    """Report Fig. 5.10: RMSE of the current-driven prediction against the viscous friction."""
+    plt = _pyplot()
+    if plt is None:
+        return None
+    values, rmse = sweep
+    fig, ax = plt.subplots(figsize=(6, 4), constrained_layout=True)
+    ax.plot(values, rmse, 'o-')
+    best = int(np.argmin(rmse))
+    ax.plot(values[best], rmse[best], 'r*', markersize=14, label=f'best D = {values[best]:.3f}')
+    ax.set(xlabel='viscous friction D [N·m·s/rad]', ylabel='RMSE of predicted wheel speed [rad/s]',
+           title='Friction sweep (report Fig. 5.10)')
+    ax.legend()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _series(frames, model):
+    time = np.array([f.stamp for f in frames])
+    data = {'time': time - time[0] if len(time) else time, 't0': time[0] if len(time) else 0.0,
+            'velocity': np.array([f.velocity for f in frames]),
+            'torque': np.array([f.torque for f in frames])}
+    for family in FAMILIES:
+        data[family] = np.array([f.values[family] for f in frames])
+        data[family + '_bound'] = np.array([f.bounds[family] for f in frames])
+    return data
+
+
+def _figures(directory, model, data, events):
+    plt = _pyplot()
+    if plt is None or not len(data['time']):
+        return []
+    written = []
+    t = data['time']
+    names = model.wheel_names
+    fig, axes = plt.subplots(len(names), 1, figsize=(11, 2.2 * len(names)), sharex=True,
+                             constrained_layout=True)
+    for w, ax in enumerate(np.atleast_1d(axes)):
+        ax.plot(t, data['velocity'][:, w], lw=1, label='measured')
+        ax.plot(t, data['velocity'][:, w] - data['observer'][:, w], lw=1, label='predicted from currents')
+        ax.set_ylabel(f'{wheel_suffix(names[w])} [rad/s]')
+    np.atleast_1d(axes)[0].legend(fontsize=8)
+    np.atleast_1d(axes)[-1].set_xlabel('time [s]')
+    fig.suptitle('Measured vs predicted wheel speed (kinematic convention; report Figs. 5.11-5.18)')
+    path = directory / 'speeds.png'
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    written.append(path)
+
+    for family in FAMILIES:
+        fig, axes = plt.subplots(len(names), 1, figsize=(11, 2.0 * len(names)), sharex=True,
+                                 constrained_layout=True)
+        for w, ax in enumerate(np.atleast_1d(axes)):
+            ax.plot(t, data[family][:, w], lw=1, label=f'{family}_{wheel_suffix(names[w])}')
+            ax.fill_between(t, -data[family + '_bound'][:, w], data[family + '_bound'][:, w],
+                            color='0.85', label='bound')
+            for event in events:
+                if event.wheel == names[w] and event.level == 'ERROR':
+                    ax.axvline(event.stamp - data['t0'], color='r', lw=1)
+            ax.legend(fontsize=7, loc='upper right')
+        np.atleast_1d(axes)[-1].set_xlabel('time [s]')
+        fig.suptitle(f'{family} residuals with their adaptive bounds (red: alarms)')
+        path = directory / f'residuals_{family}.png'
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+
+    fig, ax = plt.subplots(figsize=(11, 2.5), constrained_layout=True)
+    rows = list(names) + ['base']
+    for event in events:
+        row = rows.index(event.wheel) if event.wheel in rows else len(rows) - 1
+        color = 'r' if event.level == 'ERROR' else 'g'
+        ax.plot(event.stamp - data['t0'], row, 'o', color=color)
+        ax.annotate(event.fault if event.level == 'ERROR' else 'OK', (event.stamp - data['t0'], row),
+                    textcoords='offset points', xytext=(4, 4), fontsize=8)
+    ax.set_yticks(range(len(rows)), rows)
+    ax.set_xlim(t[0], t[-1])
+    ax.set(xlabel='time [s]', title='Fault events')
+    path = directory / 'timeline.png'
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    written.append(path)
+    return written
+
+
+def write_report(directory, model, pipeline, events, source):
+    """Write figures and ``index.html`` for a replay; returns the index path."""
+    directory.mkdir(parents=True, exist_ok=True)
+    frames = pipeline.frames or []
+    data = _series(frames, model)
+    figures = _figures(directory, model, data, events)
+    rows = ''.join(f'<tr><td>{e.stamp:.3f}</td><td>{e.level}</td><td>{html.escape(str(e.wheel))}'
+                   f'</td><td>{e.fault}</td><td>{html.escape(", ".join(e.residuals))}</td>'
+                   f'<td>{html.escape(e.detail)}</td></tr>' for e in events)
+    images = ''.join(f'<h2>{p.stem}</h2><img src="{p.name}" style="max-width:100%">' for p in figures)
+    page = (f'<!doctype html><html><head><meta charset="utf-8"><title>youbot-fdi replay</title>'
+            f'<style>body{{font-family:sans-serif;margin:2em}}td,th{{padding:2px 8px;'
+            f'border-bottom:1px solid #ddd}}</style></head><body>'
+            f'<h1>youbot-fdi replay of {html.escape(str(source))}</h1>'
+            f'<p>profile {html.escape(model.profile.name)}, {len(frames)} samples, '
+            f'{len(events)} events.</p><table><tr><th>stamp [s]</th><th>level</th><th>wheel</th>'
+            f'<th>fault</th><th>residuals</th><th>detail</th></tr>{rows}</table>{images}'
+            f'{"" if figures else "<p>(figures need matplotlib)</p>"}</body></html>')
+    index = directory / 'index.html'
+    index.write_text(page)
+    return index
