@@ -195,3 +195,35 @@ def test_replay_cli_runs_as_a_process(recordings, tmp_path):
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert 'wheel_joint_bl friction' in result.stdout
+
+
+def test_record_cli_makes_a_recording_replay_can_read(tmp_path, capsys):
+    out = tmp_path / 'rec'
+    assert main(['record', str(out), '--duration', '4', '--fault', 'friction', '--wheel',
+                 'wheel_joint_fr', '--at', '2', '--storage', 'mcap']) == 0
+    assert 'friction on wheel_joint_fr' in capsys.readouterr().out
+    alarms = [e for e in replay(out) if e.level == 'ERROR']
+    assert alarms and alarms[0].wheel == 'wheel_joint_fr'
+
+
+def test_runaway_becomes_visible_at_the_next_command_change(model):
+    from youbot_fdi.fault_bench import _visible_time
+    from youbot_fdi.model.scenario import Segment
+    script = DriveScript((Segment('a', (0.3, 0, 0), 2.0), Segment('b', (0.31, 0, 0), 1.0),
+                          Segment('c', (0.0, 0, 0), 1.0)))
+    # 0.3 -> 0.31 m/s changes each wheel by 0.2 rad/s (not visible); the stop at 3 s is.
+    assert _visible_time(model, script, 0, 1.0) == pytest.approx(3.0)
+    assert math.isnan(_visible_time(model, script, 0, 3.5))
+
+
+def test_measurement_delay_delays_what_the_modules_report(model):
+    from tmcm_rig import forward_command, make_rig
+    prompt, late = make_rig(), make_rig(measurement_delay=0.05)
+    try:
+        command = forward_command(model)
+        for rig in (prompt, late):
+            rig.run(0.1, 'velocity', command)
+        assert abs(late.driver.sample().velocity[1]) < 0.8 * abs(prompt.driver.sample().velocity[1])
+    finally:
+        prompt.close()
+        late.close()

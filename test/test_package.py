@@ -10,7 +10,8 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'README.md', 'resource', 'youbot_fdi',
                  'config')
-CORE_MODULES = ('youbot_fdi.model', 'youbot_fdi.structure', 'youbot_fdi.cli.main')
+CORE_MODULES = ('youbot_fdi.model', 'youbot_fdi.structure', 'youbot_fdi.fdi.residuals',
+                'youbot_fdi.fdi.decision', 'youbot_fdi.fdi.pipeline', 'youbot_fdi.fdi.identify')
 
 BLOCKER = """
 import sys
@@ -35,6 +36,11 @@ def import_blocked(blocked, modules):
 
 def test_core_imports_without_rclpy_can_or_rosbags():
     result = import_blocked(('rclpy', 'can', 'rosbags'), CORE_MODULES)
+    assert result.returncode == 0, result.stderr
+
+
+def test_offline_command_line_imports_without_rclpy():
+    result = import_blocked(('rclpy',), ('youbot_fdi.cli.main', 'youbot_fdi.bag', 'youbot_fdi.recordings'))
     assert result.returncode == 0, result.stderr
 
 

@@ -30,8 +30,12 @@ class RecordingWriter:
         self._twist = types['geometry_msgs/msg/Twist']
         self._vector = types['geometry_msgs/msg/Vector3']
         plugin = StoragePlugin.SQLITE3 if storage == 'sqlite3' else StoragePlugin.MCAP
-        self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=plugin)
-        self._writer.open()
+        try:
+            self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=plugin)
+            self._writer.open()
+        except Exception as err:  # noqa: BLE001 - rosbags' WriterError, OSError, ...
+            msg = f'{self.path}: cannot create a recording here ({err})'
+            raise RecordingError(msg) from err
         self._joints = self._writer.add_connection(JOINT_STATES, JOINT_STATE_TYPE,
                                                    typestore=self.typestore)
         self._commands = self._writer.add_connection(WHEEL_COMMANDS, JOINT_STATE_TYPE,

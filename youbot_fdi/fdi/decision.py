@@ -114,12 +114,14 @@ class DecisionMaker:
 
     # ------------------------------------------------------------------ alarms
     def _update_alarms(self, frame):
-        z = np.array([np.nan_to_num(np.abs(frame.values[f]) / frame.bounds[f]) for f in FAMILIES])
+        values, bounds = frame.flat()
+        z = (np.abs(values) / bounds).reshape(len(FAMILIES), self.n)
+        z[np.isnan(z)] = 0.0  # a residual that cannot be computed (no effort recorded) is silent
         over = z > 1.0
         # Only a wheel that moves or carries current can show that it is healthy again: a fault
         # is not cleared because the wheel stood still.
         excited = ((np.abs(frame.velocity) > self.settings.stuck_speed)
-                   | (np.abs(np.nan_to_num(frame.torque)) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
+                   | (np.abs(frame.torque) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
         self._above = np.where(over, self._above + 1, 0)
         self._below = np.where(over, 0, np.where(excited, self._below + 1, self._below))
         self.alarm = np.where(self._above >= self.settings.persistence, True,
@@ -131,21 +133,22 @@ class DecisionMaker:
 
     # ------------------------------------------------------------------ isolation
     def _isolate_torque(self, fired, z_observer):
-        """Wheel diagnoses from the alarming torque residuals: {wheel index: structural class}."""
+        """Wheel diagnoses from the alarming torque residuals: {wheel index: structural class}.
+
+        Hypotheses: every single fault whose torque signature covers the alarms, and the set of
+        actuator/friction faults of exactly the alarming wheels. The fewest silent residuals win
+        (a silent residual exonerates the faults it would see), then the fewest faults.
+        """
         if not fired:
             return {}
-        candidates = []
-        for kind, wheel, torque, _ in self.signatures.values():
-            if fired <= torque:
-                candidates.append((len(torque - fired), kind, wheel))
-        if not candidates:  # several wheels at once: each alarming wheel on its own
+        hypotheses = [(len(torque - fired), 1, kind, wheel)
+                      for kind, wheel, torque, _ in self.signatures.values() if fired <= torque]
+        hypotheses.append((0, len(fired), 'actuator', None))
+        silent, size, kind, _ = min(hypotheses, key=lambda h: (h[0], h[1]))
+        winners = [h for h in hypotheses if (h[0], h[1]) == (silent, size)]
+        if any(h[2] in ACTUATOR_CLASS for h in winners):
             return {w: 'actuator' for w in fired}
-        best = min(c[0] for c in candidates)
-        winners = [(kind, wheel) for silent, kind, wheel in candidates if silent == best]
-        kinds = {kind for kind, _ in winners}
-        if kinds & set(ACTUATOR_CLASS):
-            return {wheel: 'actuator' for kind, wheel in winners if kind in ACTUATOR_CLASS}
-        sensors = [wheel for kind, wheel in winners if kind == SENSOR_CLASS]
+        sensors = [h[3] for h in winners if h[2] == SENSOR_CLASS]
         observed = [w for w in sensors if self._family('observer')[w]]
         wheel = max(observed or sensors, key=lambda w: z_observer[w])
         return {wheel: SENSOR_CLASS}
@@ -168,18 +171,29 @@ class DecisionMaker:
             errors.append(float(np.sum((residual - gain * regressor) ** 2)))
         return FaultKind.TORQUE_LOSS if errors[0] <= errors[1] else FaultKind.FRICTION
 
+    def _active(self, faults):
+        """Wheel indices currently in ERROR with one of ``faults`` (FaultKind values)."""
+        return {w for w, name in enumerate(self.wheel_names)
+                if self.components[name].level == ERROR and self.components[name].fault in faults}
+
     def _diagnose(self, frame, z):
-        """{wheel index: (FaultKind, residual names)} for this frame."""
+        """{wheel index: (FaultKind, residual names)} for this frame.
+
+        Faults already found explain the residuals they disturb: a speed-sensor fault explains
+        every torque and command residual (M couples the wheels), any fault explains the other
+        wheels' command paths (a wheel that misbehaves drags the base).
+        """
         diagnoses = {}
-        should_move = (np.abs(frame.command) > self.settings.stuck_speed
-                       if frame.command_mode == 'velocity' else np.zeros(self.n, dtype=bool))
-        frozen = frame.frozen >= self.settings.frozen_samples
-        encoder = self._family('encoder') | (frozen & should_move)
-        for w in np.flatnonzero(encoder):
+        sensor_faults = (FaultKind.ENCODER_FREEZE.value, FaultKind.COMM_LOSS.value)
+        still_frozen = {w for w in self._active(sensor_faults)
+                        if frame.frozen[w] >= self.settings.frozen_samples}
+        # A freeze shows as a position that stops following the speed (encoder_<w>); frozen
+        # readings alone prove nothing: a standing wheel reads the same every sample.
+        for w in sorted(set(np.flatnonzero(self._family('encoder'))) | still_frozen):
             frozen_effort = frame.effort_frozen[w] >= self.settings.frozen_samples
             kind = FaultKind.COMM_LOSS if frozen_effort else FaultKind.ENCODER_FREEZE
             diagnoses[int(w)] = (kind, (f'encoder_{self.suffixes[w]}',))
-        if diagnoses:  # a sensor fault explains the torque and observer residuals it disturbs
+        if diagnoses:
             return diagnoses
         fired = frozenset(int(w) for w in np.flatnonzero(self._family('torque')))
         for wheel, kind in self._isolate_torque(fired, z[FAMILIES.index('observer')]).items():
@@ -189,8 +203,9 @@ class DecisionMaker:
             else:
                 component = self.components[self.wheel_names[wheel]]
                 diagnoses[wheel] = (self._name_actuator_fault(wheel, frame, component), names)
+        faulty = self._active({k.value for k in FaultKind}) | set(diagnoses)
         for w in np.flatnonzero(self._family('command')):
-            if int(w) not in diagnoses and not fired:
+            if not fired and not faulty - {int(w)}:
                 diagnoses[int(w)] = (FaultKind.RUNAWAY, (f'command_{self.suffixes[w]}',))
         return diagnoses
 

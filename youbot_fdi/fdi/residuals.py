@@ -84,6 +84,9 @@ class ResidualGenerator:
         self.torque_per_amp = drive.torque_per_amp
         self.max_current = drive.max_current
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
+        self._loop_cache = {}
+        self._has_coulomb = bool(np.any(dyn.coulomb > 0))
+        self._no_torque = np.zeros(self.n)
         self.command_mode = 'velocity'
         self.command_values = np.zeros(self.n)
         self.command_stamp = -np.inf
@@ -99,7 +102,29 @@ class ResidualGenerator:
         return self._cache[key]
 
     def _coulomb(self, velocity):
+        if not self._has_coulomb:
+            return self._no_torque
         return self.model.dynamics.coulomb_torque(velocity)
+
+    def _loop_step(self, steps):
+        """Exact unsaturated map of ``steps`` firmware periods of the PI loop.
+
+        State ``x = [speed; integral]``, ``x' = A x + B r + C c`` with r the speed target and c the
+        friction torque held over the interval (Coulomb, evaluated at its start).
+        """
+        if steps not in self._loop_cache:
+            n, period, g = self.n, self.period, self.torque_per_amp
+            phi, gamma, eye = self._phi1, self._gamma1, np.eye(self.n)
+            gain_p, gain_i = g * self.kp, g * self.ki
+            a1 = np.block([[phi - gamma * (gain_p + gain_i * period), gamma * gain_i],
+                           [-period * eye, eye]])
+            b1 = np.vstack([gamma * (gain_p + gain_i * period), period * eye])
+            c1 = np.vstack([-gamma, np.zeros((n, n))])
+            a, b, c = np.eye(2 * n), np.zeros((2 * n, n)), np.zeros((2 * n, n))
+            for _ in range(steps):
+                a, b, c = a1 @ a, a1 @ b + b1, a1 @ c + c1
+            self._loop_cache[steps] = (a, b, c)
+        return self._loop_cache[steps]
 
     def command(self, sample):
         """Take a /wheel_commands sample (:class:`~youbot_fdi.bag.reader.CommandSample`)."""
@@ -120,26 +145,43 @@ class ResidualGenerator:
         mode, target = self._command_in_force(stamp)
         self._observer = velocity.copy()
         self._cmd_speed = velocity.copy()
-        current = np.nan_to_num(torque) / self.torque_per_amp
+        current = np.where(np.isnan(torque), 0.0, torque) / self.torque_per_amp
         error = target - velocity if mode == 'velocity' else np.zeros(self.n)
         self._cmd_integral = np.clip((current - self.kp * error) / self.ki if self.ki > 0 else 0.0,
                                      -self._integral_limit, self._integral_limit)
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._last = (stamp, position, velocity, torque)
+        self._started = stamp
 
     def _predict_command_path(self, dt, mode, target, velocity):
-        """Advance the firmware-loop prediction over ``dt`` (velocity mode), at the firmware period."""
+        """Advance the firmware-loop prediction over ``dt`` (velocity mode), at the firmware period.
+
+        The loop is linear while neither the current nor the integral is at its limit: then one
+        exact step covers the interval; otherwise it is stepped period by period.
+        """
         if mode != 'velocity':
             self._cmd_speed = velocity.copy()
             self._cmd_integral = np.zeros(self.n)
             return
+        steps = max(1, int(round(dt / self.period)))
         speed, integral = self._cmd_speed, self._cmd_integral
-        period, limit = self.period, self._integral_limit
-        for _ in range(max(1, int(round(dt / period)))):
+        limit, max_current = self._integral_limit, self.max_current
+        a, b, c = self._loop_step(steps)
+        state = a @ np.concatenate([speed, integral]) + b @ target + c @ self._coulomb(speed)
+        new_speed, new_integral = state[:self.n], state[self.n:]
+        start_current = self.kp * (target - speed) + self.ki * (integral + (target - speed) * self.period)
+        end_current = self.kp * (target - new_speed) + self.ki * new_integral
+        if (np.abs(start_current).max() < max_current and np.abs(end_current).max() < max_current
+                and np.abs(new_integral).max() < limit):
+            self._cmd_speed, self._cmd_integral = new_speed, new_integral
+            return
+        period = self.period
+        for _ in range(steps):
             error = target - speed
-            integral = np.clip(integral + error * period, -limit, limit)
-            current = np.clip(self.kp * error + self.ki * integral, -self.max_current, self.max_current)
+            integral = np.minimum(np.maximum(integral + error * period, -limit), limit)
+            current = np.minimum(np.maximum(self.kp * error + self.ki * integral, -max_current),
+                                 max_current)
             speed = self._phi1 @ speed + self._gamma1 @ (current * self.torque_per_amp
                                                         - self._coulomb(speed))
         self._cmd_speed, self._cmd_integral = speed, integral
@@ -151,6 +193,7 @@ class ResidualGenerator:
         position = self.signs * sample.position
         velocity = self.signs * sample.velocity
         torque = self.signs * sample.effort
+        self._torque_known = not np.isnan(torque).any()
         if self._last is None:
             self._start(stamp, position, velocity, torque)
             return None
@@ -173,7 +216,7 @@ class ResidualGenerator:
                     + s.torque_current_change_fraction * np.abs(torque - last_torque)
                     + s.torque_friction_fraction * (np.abs(self.friction * mean_speed) + np.abs(coulomb)))
 
-        applied = np.nan_to_num(mean_torque)
+        applied = mean_torque if self._torque_known else self._no_torque
         self._observer = phi @ self._observer + gamma @ (applied - self._coulomb(self._observer))
         observer_r = velocity - self._observer
         observer_u = s.observer_sigma + s.observer_speed_fraction * np.abs(self._observer)
@@ -182,7 +225,9 @@ class ResidualGenerator:
         mode, target = self._command_in_force(stamp)
         before = self._cmd_speed.copy()
         self._predict_command_path(dt, mode, target, velocity)
-        if mode == 'velocity':
+        if stamp - self._started < s.startup_time:
+            command_r, command_u = np.zeros(self.n), np.ones(self.n)  # the prediction settles
+        elif mode == 'velocity':
             command_r = velocity - self._cmd_speed
             command_u = (s.command_sigma + s.command_speed_fraction * np.abs(self._cmd_speed)
                          + s.command_transient_fraction * np.maximum(np.abs(target - self._cmd_speed),
@@ -192,7 +237,8 @@ class ResidualGenerator:
             command_u = s.effort_sigma + s.effort_fraction * np.abs(target)
 
         encoder_r = (position - last_position) - mean_speed * dt
-        encoder_u = s.encoder_sigma + s.encoder_speed_fraction * np.abs(mean_speed) * dt
+        encoder_u = s.encoder_sigma + (s.encoder_speed_fraction * np.abs(mean_speed)
+                                       + s.encoder_change_fraction * np.abs(velocity - last_velocity)) * dt
 
         unchanged = (position == last_position) & (velocity == last_velocity)
         self._frozen = np.where(unchanged, self._frozen + 1, 0)

@@ -34,9 +34,11 @@ class FdiSettings:
     effort_sigma: float = 0.02
     effort_fraction: float = 0.1
     command_timeout: float = 0.25  # the shim's watchdog: older commands mean zero speed [s]
+    startup_time: float = 0.5  # the command path is not judged while its prediction settles [s]
     # encoder_<w>: position increment minus speed * dt [rad]
     encoder_sigma: float = 0.002
-    encoder_speed_fraction: float = 0.3
+    encoder_speed_fraction: float = 0.2
+    encoder_change_fraction: float = 0.5  # of the speed change within the interval (trapezoid error)
     # decision
     persistence: int = 3  # samples over the bound to raise an alarm
     release: int = 50  # samples under the bound to clear it

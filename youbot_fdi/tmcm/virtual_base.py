@@ -23,6 +23,7 @@ speed freeze), ``comm_loss`` (the module stops answering and, hearing nothing, t
 Time is simulated time: :meth:`VirtualYoubot.advance` steps it; :meth:`VirtualYoubot.start` runs a
 thread that keeps it in step with the wall clock.
 """
+from collections import deque
 from dataclasses import dataclass
 import threading
 import time
@@ -67,6 +68,7 @@ class VirtualBaseSettings:
     current_noise: float = 5.0
     velocity_noise: float = 1.0
     seed: int = 0
+    measurement_delay: float = 0.0  # the reported state lags the true one by this much [s]
     realtime_step: float = 0.005
     fault: str = NO_FAULT
     fault_wheel: str = 'wheel_joint_fl'
@@ -81,7 +83,7 @@ class VirtualBaseSettings:
             problems.append('module_ids must be distinct')
         if self.host_id in self.module_ids:
             problems.append('host_id must differ from every module id')
-        for name in ('controller_timeout', 'current_noise', 'velocity_noise'):
+        for name in ('controller_timeout', 'current_noise', 'velocity_noise', 'measurement_delay'):
             if getattr(self, name) < 0:
                 problems.append(f'{name} must be >= 0')
         for name in ('nominal_current', 'thermal_time_constant', 'position_gain', 'realtime_step',
@@ -160,6 +162,9 @@ class VirtualYoubot:
         self._module_index = {m: k for k, m in enumerate(settings.module_ids)}
         self.controller_timeout = settings.controller_timeout
         self._last_current = np.zeros(len(self.modules))
+        delay_steps = int(round(settings.measurement_delay / self.period))
+        self._history = deque(maxlen=delay_steps + 1)
+        self._record_history()
         self._faults = {}
         self._frozen = {}
         self.transport = CanTransport(bus, self._on_frame, owns_bus=owns_bus)
@@ -192,8 +197,8 @@ class VirtualYoubot:
             if kind is FaultKind.RUNAWAY:
                 self._frozen[index] = ('runaway', module.mode, module.target)
             elif kind is FaultKind.ENCODER_FREEZE:
-                self._frozen[index] = ('encoder', self.simulator.position[index],
-                                       self.simulator.velocity[index])
+                position, velocity, _ = self._reported()
+                self._frozen[index] = ('encoder', position[index], velocity[index])
             self._apply_friction()
 
     def clear_faults(self):
@@ -375,9 +380,17 @@ class VirtualYoubot:
             self.transport.send(can_id, payload)
 
     # ------------------------------------------------------------------ measurements
+    def _record_history(self):
+        self._history.append((self.simulator.position.copy(), self.simulator.velocity.copy(),
+                              self._last_current.copy()))
+
+    def _reported(self):
+        """(position, velocity, current) as the modules report them: ``measurement_delay`` old."""
+        return self._history[0]
+
     def _ticks(self, module, raw=False):
         index = self.modules.index(module)
-        angle = self.simulator.position[index]
+        angle = self._reported()[0][index]
         frozen = self._frozen.get(index)
         if frozen is not None and frozen[0] == 'encoder':
             angle = frozen[1]
@@ -399,13 +412,14 @@ class VirtualYoubot:
     def _status(self, index):
         """The module's current sample in motor units and driver convention."""
         module = self.modules[index]
-        speed = self.simulator.velocity[index]
+        _, reported_speed, reported_current = self._reported()
+        speed = reported_speed[index]
         frozen = self._frozen.get(index)
         if frozen is not None and frozen[0] == 'encoder':
             speed = frozen[2]
         rpm = float(self.drive.wheel_speed_to_rpm(self.signs[index] * speed))
-        current_ma = self.signs[index] * self._last_current[index] * MILLISECONDS
-        if self.settings.velocity_noise > 0:
+        current_ma = self.signs[index] * reported_current[index] * MILLISECONDS
+        if self.settings.velocity_noise > 0 and frozen is None:  # a frozen reading is frozen
             rpm += self._rng.normal(0.0, self.settings.velocity_noise)
         if self.settings.current_noise > 0:
             current_ma += self._rng.normal(0.0, self.settings.current_noise)
@@ -473,6 +487,7 @@ class VirtualYoubot:
             if module.i2t > self.settings.nominal_current ** 2:
                 module.sticky_flags |= ErrorFlag.I2T_EXCEEDED
         self.time += self.period
+        self._record_history()
 
     def advance(self, duration):
         """Advance the simulation by ``duration`` [s] (rounded to whole firmware periods)."""
