@@ -58,6 +58,10 @@ setup(
             'driver_shim = youbot_fdi.nodes.driver_shim:main',
             'virtual_youbot = youbot_fdi.nodes.virtual_youbot:main',
             'youbot_sim = youbot_fdi.nodes.composed:sim_main',
+            'kinematics_bridge = youbot_fdi.nodes.kinematics_bridge:main',
+            'observer = youbot_fdi.nodes.observer:main',
+            'decision = youbot_fdi.nodes.decision:main',
+            'youbot_fdi_suite = youbot_fdi.nodes.composed:fdi_main',
         ],
     },
 )

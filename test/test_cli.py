@@ -12,13 +12,13 @@ def run_cli(*args):
                           capture_output=True, text=True, timeout=120)
 
 
-def test_demo_runs_prints_a_summary_and_writes_a_figure(tmp_path):
-    result = run_cli('demo', '--duration', '3', '--output-dir', str(tmp_path))
+def test_simulate_prints_a_summary_and_writes_a_figure(tmp_path):
+    result = run_cli('simulate', '--duration', '3', '--output-dir', str(tmp_path))
     assert result.returncode == 0, result.stderr
     for name in ('wheel_joint_fl', 'wheel_joint_fr', 'wheel_joint_bl', 'wheel_joint_br'):
         assert name in result.stdout
     assert 'final pose odometry' in result.stdout
-    figure = tmp_path / 'demo_drive.png'
+    figure = tmp_path / 'drive.png'
     assert figure.stat().st_size > 10_000
     assert figure.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 
@@ -37,7 +37,7 @@ def test_unknown_profile_is_a_one_line_error(capsys):
     assert len(err) == 1 and 'unknown profile' in err[0]
 
 
-@pytest.mark.parametrize('args', [['--help'], ['demo', '--help'], ['model', '--help']])
+@pytest.mark.parametrize('args', [['--help'], ['demo', '--help'], ['simulate', '--help'], ['model', '--help'], ['replay', '--help'], ['identify', '--help'], ['record', '--help'], ['structure', '--help'], ['bench', '--help'], ['echo', '--help']])
 def test_help_everywhere(args):
     result = run_cli(*args)
     assert result.returncode == 0 and 'usage: youbot-fdi' in result.stdout

@@ -4,13 +4,12 @@ Messages are matched to the model's wheels **by joint name**. Bad messages (NaN,
 than the names, a wheel missing) are skipped and counted, never fatal; an unreadable recording or
 one without the joint-state topic raises :class:`RecordingError` with a one-line reason.
 """
-from dataclasses import dataclass
-import math
 from pathlib import Path
 
-import numpy as np
-
 from youbot_fdi.errors import FdiError
+from youbot_fdi.fdi.samples import CommandSample, JointSample, SampleMapper
+
+__all__ = ['CommandSample', 'JointSample', 'RecordingError', 'RecordingReader']
 
 JOINT_STATES = '/joint_states'
 WHEEL_COMMANDS = '/wheel_commands'
@@ -21,25 +20,6 @@ NANOSECONDS = 1e9
 
 class RecordingError(FdiError):
     """A recording cannot be read, or lacks what is needed."""
-
-
-@dataclass(frozen=True)
-class JointSample:
-    """One /joint_states message, in the model's wheel order (driver convention)."""
-
-    stamp: float  # header stamp [s]
-    position: np.ndarray  # [rad]
-    velocity: np.ndarray  # [rad/s]
-    effort: np.ndarray  # [N·m]; NaN where the message had none
-
-
-@dataclass(frozen=True)
-class CommandSample:
-    """One /wheel_commands message, in the model's wheel order (driver convention)."""
-
-    stamp: float  # bag receive time [s] (commands carry no reliable header stamp)
-    kind: str  # 'velocity' [rad/s] or 'effort' [N·m]
-    values: np.ndarray
 
 
 def _stamp(header):
@@ -73,9 +53,8 @@ class RecordingReader:
         self.wheel_names = tuple(wheel_names)
         self.joint_topic, self.command_topic = joint_topic, command_topic
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
-        self.counters = dict.fromkeys(('joint_states', 'wheel_commands', 'skipped_nan',
-                                       'skipped_short', 'skipped_missing_joint',
-                                       'skipped_no_values'), 0)
+        self.mapper = SampleMapper(wheel_names)
+        self.counters = self.mapper.counters
         if not self.path.exists():
             msg = f'{self.path}: no such recording'
             raise RecordingError(msg)
@@ -99,7 +78,6 @@ class RecordingReader:
             msg = f'{self.path}: {bad[0]} is not {JOINT_STATE_TYPE}'
             raise RecordingError(msg)
         self.has_commands = command_topic in topics
-        self._index_cache = {}
 
     @property
     def duration(self):
@@ -116,64 +94,11 @@ class RecordingReader:
         """Bag time of the first message [s]."""
         return self._reader.start_time / NANOSECONDS
 
-    def _indices(self, names):
-        key = tuple(names)
-        if key not in self._index_cache:
-            position = {name: i for i, name in enumerate(key)}
-            missing = [n for n in self.wheel_names if n not in position]
-            self._index_cache[key] = (None if missing else
-                                      np.array([position[n] for n in self.wheel_names]))
-        return self._index_cache[key]
-
-    def _pick(self, array, index, n_names):
-        if len(array) == 0:
-            return None
-        if len(array) < n_names:
-            self.counters['skipped_short'] += 1
-            return False
-        return np.asarray(array, dtype=float)[index]
-
-    def _joint_sample(self, msg):
-        index = self._indices(msg.name)
-        if index is None:
-            self.counters['skipped_missing_joint'] += 1
-            return None
-        n = len(msg.name)
-        position = self._pick(msg.position, index, n)
-        velocity = self._pick(msg.velocity, index, n)
-        effort = self._pick(msg.effort, index, n)
-        if position is False or velocity is False or effort is False:
-            return None
-        if position is None or velocity is None:
-            self.counters['skipped_no_values'] += 1
-            return None
-        if effort is None:
-            effort = np.full(len(self.wheel_names), math.nan)
-        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(velocity))):
-            self.counters['skipped_nan'] += 1
-            return None
-        self.counters['joint_states'] += 1
-        return JointSample(_stamp(msg.header), position, velocity, effort)
-
-    def _command_sample(self, msg, bag_time):
-        index = self._indices(msg.name)
-        if index is None:
-            self.counters['skipped_missing_joint'] += 1
-            return None
-        n = len(msg.name)
-        for kind, array in (('velocity', msg.velocity), ('effort', msg.effort)):
-            values = self._pick(array, index, n)
-            if values is False:
-                return None
-            if values is None:
-                continue
-            if not np.all(np.isfinite(values)):
-                self.counters['skipped_nan'] += 1
-                return None
-            self.counters['wheel_commands'] += 1
-            return CommandSample(bag_time, kind, values)
-        self.counters['skipped_no_values'] += 1
-        return None
+    def _sample(self, topic, msg, bag_time):
+        if topic == self.joint_topic:
+            return self.mapper.joint_sample(_stamp(msg.header), msg.name, msg.position,
+                                            msg.velocity, msg.effort)
+        return self.mapper.command_sample(bag_time, msg.name, msg.velocity, msg.effort)
 
     def samples(self):
         """Yield :class:`JointSample` and :class:`CommandSample` in recording order.
@@ -189,10 +114,7 @@ class RecordingReader:
                 except Exception:  # noqa: BLE001 - a corrupt message is skipped, not fatal
                     self.counters['skipped_no_values'] += 1
                     continue
-                if connection.topic == self.joint_topic:
-                    sample = self._joint_sample(msg)
-                else:
-                    sample = self._command_sample(msg, timestamp / NANOSECONDS)
+                sample = self._sample(connection.topic, msg, timestamp / NANOSECONDS)
                 if sample is not None:
                     yield sample
         except RecordingError:

@@ -4,10 +4,9 @@ import sys
 import time
 
 from youbot_fdi.bag.reader import JOINT_STATES, RecordingError, RecordingReader, WHEEL_COMMANDS
-from youbot_fdi.fdi.pipeline import FdiPipeline
+from youbot_fdi.fdi.pipeline import configure, FdiPipeline
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.model.profile import load_model, load_profile
-from youbot_fdi.settings import load_settings, settings_from_mapping
+from youbot_fdi.settings import load_settings
 
 NAME = 'replay'
 PROGRESS_MIN_MESSAGES = 20000  # show a progress bar from this many messages on
@@ -33,17 +32,8 @@ def add_parser(subparsers):
 
 
 def build_pipeline(params_path=None, fdi_config=None, keep_frames=False):
-    """The model and pipeline a replay or node uses: identified params override the defaults."""
-    settings = load_settings(FdiSettings, 'fdi', fdi_config)
-    if params_path:
-        profile = load_profile(params_path)
-        overrides = dict(profile.fdi or {})
-        if overrides:
-            values = {**settings.__dict__, **overrides}
-            settings = settings_from_mapping(FdiSettings, values, source=str(params_path))
-        model = load_model(params_path)
-    else:
-        model = load_model(settings.profile)
+    """The model and pipeline a replay uses: identified params override the defaults."""
+    model, settings = configure(load_settings(FdiSettings, 'fdi', fdi_config), params_path)
     return model, FdiPipeline(model, settings, keep_frames=keep_frames)
 
 

@@ -204,7 +204,12 @@ class DecisionMaker:
                 component = self.components[self.wheel_names[wheel]]
                 diagnoses[wheel] = (self._name_actuator_fault(wheel, frame, component), names)
         faulty = self._active({k.value for k in FaultKind}) | set(diagnoses)
-        for w in np.flatnonzero(self._family('command')):
+        disagreeing = np.flatnonzero(self._family('command'))
+        # Half the wheels or more off their command path at once is not one wheel running away: the commands
+        # and the samples disagree in time (late commands, a clock offset), or the base is held.
+        if len(disagreeing) * 2 >= self.n:
+            return diagnoses
+        for w in disagreeing:
             if not fired and not faulty - {int(w)}:
                 diagnoses[int(w)] = (FaultKind.RUNAWAY, (f'command_{self.suffixes[w]}',))
         return diagnoses
@@ -261,16 +266,19 @@ class DecisionMaker:
     def _wheel_alarms(self, w):
         return bool(self.alarm[:, w].any())
 
-    def data_gap(self, last_stamp, resumed_stamp):
-        """/joint_states stopped for longer than comm_timeout: ERROR then OK on the base."""
-        gap = resumed_stamp - last_stamp
-        events = [self._transition(BASE, ERROR, FaultKind.COMM_LOSS.value,
-                                   last_stamp + self.settings.comm_timeout, (),
-                                   f'no /joint_states for {gap:.2f} s')]
-        if resumed_stamp is not None:
-            events.append(self._transition(BASE, OK, FaultKind.COMM_LOSS.value, resumed_stamp, (),
-                                           'data resumed'))
-        return [e for e in events if e is not None]
+    def data_stalled(self, last_stamp):
+        """No /joint_states since ``last_stamp`` for longer than comm_timeout: comm_loss of the base."""
+        event = self._transition(BASE, ERROR, FaultKind.COMM_LOSS.value,
+                                 last_stamp + self.settings.comm_timeout, (),
+                                 f'no /joint_states for more than {self.settings.comm_timeout:g} s')
+        return [event] if event is not None else []
+
+    def data_resumed(self, stamp):
+        """Fresh data after a stall: the base's comm_loss clears."""
+        if self.components[BASE].level == OK:
+            return []
+        event = self._transition(BASE, OK, FaultKind.COMM_LOSS.value, stamp, (), 'data resumed')
+        return [event] if event is not None else []
 
     def states(self):
         """Component -> (level, fault)."""

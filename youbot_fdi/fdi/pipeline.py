@@ -12,8 +12,22 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.model.profile import load_model, load_profile
+from youbot_fdi.settings import settings_from_mapping
 
 DEFAULT_RESIDUAL_MODEL = 'youbot'
+
+
+def configure(settings, params_path=None):
+    """The model and settings to run with: an ``identify`` parameter file overrides the profile
+    and the noise floors of ``settings``."""
+    if not params_path:
+        return load_model(settings.profile), settings
+    overrides = load_profile(params_path).fdi or {}
+    if overrides:
+        settings = settings_from_mapping(FdiSettings, {**settings.__dict__, **overrides},
+                                         source=str(params_path))
+    return load_model(params_path), settings
 
 
 def load_residual_data(path=None):
@@ -61,7 +75,8 @@ class FdiPipeline:
         """A /joint_states sample; returns the fault events it causes."""
         events = []
         if self._last_stamp is not None and sample.stamp - self._last_stamp > self.settings.comm_timeout:
-            events += self.decision.data_gap(self._last_stamp, sample.stamp)
+            events += self.decision.data_stalled(self._last_stamp)
+        events += self.decision.data_resumed(sample.stamp)
         if self._last_stamp is None or sample.stamp > self._last_stamp:
             self._last_stamp = sample.stamp
         frame = self.generator.update(sample)

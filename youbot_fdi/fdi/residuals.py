@@ -30,6 +30,9 @@ from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.structure.generate import wheel_suffix
 
 FAMILIES = ('torque', 'observer', 'command', 'encoder')
+#: Signals a frame carries besides its residuals: (label prefix, attribute).
+SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
+           ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'))
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
 
 
@@ -55,6 +58,51 @@ class ResidualFrame:
         """(values, bounds) as flat arrays in :meth:`names` order."""
         return (np.concatenate([self.values[f] for f in FAMILIES]),
                 np.concatenate([self.bounds[f] for f in FAMILIES]))
+
+    def to_labelled(self, wheel_names):
+        """(labels, values, bounds): the residuals, then the signals the decision needs.
+
+        The residuals carry their bounds; the signals (``speed_<w>``, ``torque_<w>``,
+        ``command_<w>``, ``frozen_<w>``, ``effort_frozen_<w>``, ``command_mode``: 1 velocity,
+        0 effort) have NaN bounds. :meth:`from_labelled` inverts it exactly.
+        """
+        suffixes = [wheel_suffix(w) for w in wheel_names]
+        values, bounds = self.flat()
+        labels = self.names(wheel_names)
+        signals = []
+        for prefix, array in SIGNALS:
+            labels += [f'{prefix}_{s}' for s in suffixes]
+            signals.append(np.asarray(getattr(self, array), dtype=float))
+        labels.append('command_mode')
+        signals.append(np.array([1.0 if self.command_mode == 'velocity' else 0.0]))
+        extra = np.concatenate(signals)
+        return (labels, np.concatenate([values, extra]),
+                np.concatenate([bounds, np.full(len(extra), np.nan)]))
+
+    @classmethod
+    def from_labelled(cls, stamp, labels, values, bounds, wheel_names):
+        """Rebuild a frame from :meth:`to_labelled` output (matched by label)."""
+        index = {label: i for i, label in enumerate(labels)}
+        suffixes = [wheel_suffix(w) for w in wheel_names]
+        values, bounds = np.asarray(values, dtype=float), np.asarray(bounds, dtype=float)
+
+        def pick(prefix, array):
+            try:
+                return array[[index[f'{prefix}_{s}'] for s in suffixes]]
+            except KeyError as err:
+                msg = f'residual vector lacks {err.args[0]}'
+                raise ValueError(msg) from None
+
+        signals = {array: pick(prefix, values) for prefix, array in SIGNALS}
+        if 'command_mode' not in index:
+            raise ValueError('residual vector lacks command_mode')
+        return cls(stamp=stamp,
+                   values={f: pick(f, values) for f in FAMILIES},
+                   bounds={f: pick(f, bounds) for f in FAMILIES},
+                   velocity=signals['velocity'], torque=signals['torque'],
+                   command_mode='velocity' if values[index['command_mode']] > 0.5 else 'effort',
+                   command=signals['command'],
+                   frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int))
 
 
 class ResidualGenerator:
@@ -140,6 +188,13 @@ class ResidualGenerator:
     def reset(self):
         """Forget the state (after a gap in the data)."""
         self._last = None
+
+    def predictions(self):
+        """(from currents, from commands): the observer's predicted wheel speeds [rad/s], driver
+        convention, or None before the first sample."""
+        if self._last is None:
+            return None
+        return self.signs * self._observer, self.signs * self._cmd_speed
 
     def _start(self, stamp, position, velocity, torque):
         mode, target = self._command_in_force(stamp)
@@ -231,14 +286,16 @@ class ResidualGenerator:
             command_r = velocity - self._cmd_speed
             command_u = (s.command_sigma + s.command_speed_fraction * np.abs(self._cmd_speed)
                          + s.command_transient_fraction * np.maximum(np.abs(target - self._cmd_speed),
-                                                                     np.abs(target - before)))
+                                                                     np.abs(target - before))
+                         + s.command_delay * np.abs(self._cmd_speed - before) / dt)
         else:
             command_r = torque - target
             command_u = s.effort_sigma + s.effort_fraction * np.abs(target)
 
         encoder_r = (position - last_position) - mean_speed * dt
-        encoder_u = s.encoder_sigma + (s.encoder_speed_fraction * np.abs(mean_speed)
-                                       + s.encoder_change_fraction * np.abs(velocity - last_velocity)) * dt
+        encoder_u = (s.encoder_sigma + (s.encoder_speed_fraction * np.abs(mean_speed)
+                                        + s.encoder_change_fraction * np.abs(velocity - last_velocity)) * dt
+                     + s.timing_jitter * np.abs(mean_speed))
 
         unchanged = (position == last_position) & (velocity == last_velocity)
         self._frozen = np.where(unchanged, self._frozen + 1, 0)

@@ -30,6 +30,7 @@ class FdiSettings:
     command_sigma: float = 0.4
     command_speed_fraction: float = 0.15
     command_transient_fraction: float = 1.0
+    command_delay: float = 0.04  # how late a command may reach the base after we saw it [s]
     # command_<w>: current mode, measured minus commanded effort [N·m]
     effort_sigma: float = 0.02
     effort_fraction: float = 0.1
@@ -39,6 +40,7 @@ class FdiSettings:
     encoder_sigma: float = 0.002
     encoder_speed_fraction: float = 0.2
     encoder_change_fraction: float = 0.5  # of the speed change within the interval (trapezoid error)
+    timing_jitter: float = 0.002  # how far a sample's stamp may be off its sampling instant [s]
     # decision
     persistence: int = 3  # samples over the bound to raise an alarm
     release: int = 50  # samples under the bound to clear it

@@ -19,9 +19,13 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.model.firmware import ControlMode
 from youbot_fdi.tmcm.parameters import AxisParameter, describe_flags, ERROR_FLAGS, ErrorFlag
 from youbot_fdi.tmcm.process_data import (CYCLE_MODULO, MotorCommand, ProcessDataIds,
-                                          StatusAssembler)
+                                          SAMPLE_TIME_MODULO, StatusAssembler)
 from youbot_fdi.tmcm.tmcl import decode_reply_can, TmclCommand, TmclRequest
 from youbot_fdi.tmcm.transport import CanTransport
+
+
+#: Fraction of the clock-offset error corrected per sample (a slow tracking filter).
+CLOCK_TRACKING = 0.01
 
 
 class CommandKind(str, enum.Enum):
@@ -77,7 +81,7 @@ class DriverSettings:
 class BaseSample:
     """The latest reading of every wheel (driver convention); arrays of shape (n,)."""
 
-    stamp: float  # driver-clock time the newest status arrived [s]
+    stamp: float  # driver-clock time of the cycle the newest status answers [s]
     position: np.ndarray  # [rad]
     velocity: np.ndarray  # [rad/s]
     effort: np.ndarray  # from the measured motor current [N·m]
@@ -139,6 +143,10 @@ class BaseDriver:
         self._command_stamp = -np.inf
         self.motors_enabled = True
         self.cycle_count = 0
+        self._sent_at = {}  # cycle counter -> driver-clock time its commands went out
+        self._clock_offset = None  # driver clock - module clock [s], tracked slowly
+        self._module_time = None  # unwrapped module clock of the last sample [s]
+        self._offset_samples = 0
         self.rejected_commands = 0
         self.last_rejection = ''
         self.transport = CanTransport(bus, self._on_frame, owns_bus=owns_bus)
@@ -185,6 +193,7 @@ class BaseDriver:
             commands = self._module_commands(now)
             self.cycle_count = (self.cycle_count + 1) % CYCLE_MODULO
             cycle = self.cycle_count
+            self._sent_at[cycle] = now
         sent = 0
         for module, (mode, value) in zip(self.settings.module_ids, commands):
             sent += self.transport.send(self.ids.command_id(module),
@@ -208,13 +217,40 @@ class BaseDriver:
             status = self._assembler.add(self.settings.module_ids[index], part, data)
             if status is None:
                 return
-            now = self.clock()
+            now = self._sample_stamp(status)
             self._position[index] = float(self.drive.ticks_to_wheel_angle(status.position))
             self._velocity[index] = float(self.drive.rpm_to_wheel_speed(status.velocity))
             self._effort[index] = float(self.drive.milliamps_to_torque(status.current))
             self._flags[index] = status.error_flags
             self._received[index] = now
             self._newest = now
+
+    def _sample_stamp(self, status):
+        """When the module sampled this state, on the driver's clock.
+
+        With a module sample time (like EtherCAT's distributed clocks): the module clock, unwrapped,
+        plus an offset to the driver clock that follows drift slowly and ignores bus and scheduling
+        jitter. Without one: the time the command this sample answers went out.
+        """
+        sent = self._sent_at.get(status.cycle, self.clock())
+        if not status.sample_time:
+            return sent
+        raw = status.sample_time / 1000.0
+        if self._module_time is None:
+            module_time = raw
+        else:
+            wrap = SAMPLE_TIME_MODULO / 1000.0
+            module_time = self._module_time + ((raw - self._module_time) % wrap)
+            if module_time - self._module_time > wrap / 2:  # an older sample of another module
+                module_time -= wrap
+        self._module_time = max(module_time, self._module_time or module_time)
+        self._offset_samples += 1
+        if self._clock_offset is None:
+            self._clock_offset = sent - module_time
+        else:  # a running mean at first, then slow tracking
+            gain = max(CLOCK_TRACKING, 1.0 / self._offset_samples)
+            self._clock_offset += gain * ((sent - module_time) - self._clock_offset)
+        return module_time + self._clock_offset
 
     def sample(self, now=None):
         """The latest :class:`BaseSample`, or None before every wheel has reported once."""

@@ -10,7 +10,8 @@ id             direction    payload (little-endian, as EtherCAT)
 0x200 + n      master->mod  int32 value (rpm | mA | ticks by mode), uint8 mode, uint8 cycle
 0x180 + n      mod->master  int32 actual position [ticks], int32 actual velocity [rpm]
 0x280 + n      mod->master  int32 actual current [mA], uint32 error flags
-0x380 + n      mod->master  int32 target value in use, uint8 mode, uint8 cycle (echo), uint16 0
+0x380 + n      mod->master  int32 target value in use, uint8 mode, uint8 cycle (echo),
+                            uint16 sample time [ms, modulo 65536] (0 = not provided)
 =============  ===========  ===================================================================
 
 Each command frame is answered by the three status frames in that order; the last one closes the
@@ -26,6 +27,7 @@ from youbot_fdi.tmcm.tmcl import TmclDecodeError
 COMMAND_FORMAT = '<iBB'
 STATUS_FORMATS = ('<ii', '<iI', '<iBBH')
 CYCLE_MODULO = 256
+SAMPLE_TIME_MODULO = 65536  # [ms]
 MAX_NODE_ID = 0x7F
 
 
@@ -108,12 +110,14 @@ class MotorStatus:
     target: int  # setpoint in use (rpm, mA or ticks)
     mode: int
     cycle: int  # cycle counter of the command this sample answers
+    sample_time: int = 0  # module clock when the state was sampled [ms modulo 65536]; 0 = none
 
     def encode(self):
         """The three payloads, in :class:`StatusPart` order."""
         return (struct.pack(STATUS_FORMATS[0], self.position, self.velocity),
                 struct.pack(STATUS_FORMATS[1], self.current, self.error_flags & 0xFFFFFFFF),
-                struct.pack(STATUS_FORMATS[2], self.target, self.mode, self.cycle % CYCLE_MODULO, 0))
+                struct.pack(STATUS_FORMATS[2], self.target, self.mode, self.cycle % CYCLE_MODULO,
+                            self.sample_time % SAMPLE_TIME_MODULO))
 
 
 def decode_status_part(part, payload):
@@ -147,5 +151,6 @@ class StatusAssembler:
         if motion is None or electrical is None:
             self.incomplete += 1
             return None
-        target, mode, cycle, _ = values
-        return MotorStatus(motion[0], motion[1], electrical[0], electrical[1], target, mode, cycle)
+        target, mode, cycle, sample_time = values
+        return MotorStatus(motion[0], motion[1], electrical[0], electrical[1], target, mode, cycle,
+                           sample_time)

@@ -35,7 +35,8 @@ from youbot_fdi.faults import FaultKind, INJECTABLE
 from youbot_fdi.model.firmware import ControlMode
 from youbot_fdi.model.simulation import BaseSimulator
 from youbot_fdi.tmcm.parameters import AxisParameter, ErrorFlag, GlobalParameter
-from youbot_fdi.tmcm.process_data import MotorCommand, MotorStatus, ProcessDataIds
+from youbot_fdi.tmcm.process_data import (MotorCommand, MotorStatus, ProcessDataIds,
+                                          SAMPLE_TIME_MODULO)
 from youbot_fdi.tmcm.tmcl import (CAN_PAYLOAD_LENGTH, TmclCommand, TmclDecodeError, TmclReply,
                                   TmclStatus, decode_request_can)
 from youbot_fdi.tmcm.transport import CanTransport
@@ -69,7 +70,7 @@ class VirtualBaseSettings:
     velocity_noise: float = 1.0
     seed: int = 0
     measurement_delay: float = 0.0  # the reported state lags the true one by this much [s]
-    realtime_step: float = 0.005
+    realtime_step: float = 0.001
     fault: str = NO_FAULT
     fault_wheel: str = 'wheel_joint_fl'
     torque_loss_gain: float = 0.3
@@ -423,9 +424,11 @@ class VirtualYoubot:
             rpm += self._rng.normal(0.0, self.settings.velocity_noise)
         if self.settings.current_noise > 0:
             current_ma += self._rng.normal(0.0, self.settings.current_noise)
+        sampled = self.time - self.settings.measurement_delay
         return MotorStatus(position=self._ticks(module), velocity=int(round(rpm)),
                            current=int(round(current_ma)), error_flags=self._flags(index, rpm),
-                           target=module.target, mode=int(module.mode), cycle=module.cycle)
+                           target=module.target, mode=int(module.mode), cycle=module.cycle,
+                           sample_time=int(round(sampled * MILLISECONDS)) % SAMPLE_TIME_MODULO or 1)
 
     def status(self, wheel):
         """The current sample of a wheel's module (:class:`MotorStatus`)."""

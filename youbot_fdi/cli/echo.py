@@ -1,0 +1,23 @@
+"""``youbot-fdi echo``: print the fault events published on /youbot_fdi/faults, one JSON line each.
+
+The topic is latched (transient-local), so the last fault state arrives even if it was published
+before echo started. On a robot ``ros2 topic echo /youbot_fdi/faults`` works too.
+"""
+NAME = 'echo'
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        NAME, help='print fault events from /youbot_fdi/faults (JSON lines)',
+        description='Subscribe to /youbot_fdi/faults (latched) and print each fault event as a '
+                    'JSON line (the --events format). Stops after --count events or --timeout s.')
+    parser.add_argument('--count', type=int, default=0, help='stop after this many events (0: never)')
+    parser.add_argument('--timeout', type=float, default=0.0, help='stop after this many seconds (0: never)')
+    parser.add_argument('--topic', default='/youbot_fdi/faults')
+    parser.set_defaults(run=run)
+
+
+def run(args):
+    from youbot_fdi.nodes.echo import echo_faults
+    echo_faults(args.topic, args.count, args.timeout, write=lambda line: print(line, flush=True))
+    return 0

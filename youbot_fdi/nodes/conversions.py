@@ -1,0 +1,67 @@
+"""Message <-> core conversions shared by the nodes (and `youbot-fdi echo`)."""
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from sensor_msgs.msg import JointState
+
+from youbot_fdi.fdi.decision import FaultEvent
+from youbot_fdi.nodes.common import NAME_PREFIX, seconds_to_stamp, stamp_to_seconds
+
+LEVELS = {'OK': DiagnosticStatus.OK, 'WARN': DiagnosticStatus.WARN,
+          'ERROR': DiagnosticStatus.ERROR, 'STALE': DiagnosticStatus.STALE}
+LEVEL_NAMES = {value: name for name, value in LEVELS.items()}
+BASE_COMPONENT = 'base'
+
+
+def joint_state(stamp, names, position=(), velocity=(), effort=()):
+    """A sensor_msgs/JointState stamped ``stamp`` [s]."""
+    msg = JointState()
+    msg.header.stamp = seconds_to_stamp(stamp)
+    msg.name = list(names)
+    msg.position = [float(v) for v in position]
+    msg.velocity = [float(v) for v in velocity]
+    msg.effort = [float(v) for v in effort]
+    return msg
+
+
+def fault_status(event, component_prefix='decision'):
+    """One DiagnosticStatus for a fault event (the content of /youbot_fdi/faults)."""
+    status = DiagnosticStatus()
+    status.level = LEVELS[event.level]
+    status.name = f'{NAME_PREFIX}/{component_prefix}: {event.wheel or BASE_COMPONENT}'
+    status.message = event.fault if event.level != 'OK' else f'ok ({event.fault} cleared)'
+    status.hardware_id = event.wheel or BASE_COMPONENT
+    status.values = [KeyValue(key='stamp', value=repr(event.stamp)),
+                     KeyValue(key='level', value=event.level),
+                     KeyValue(key='wheel', value=event.wheel or ''),
+                     KeyValue(key='fault', value=event.fault),
+                     KeyValue(key='residuals', value=','.join(event.residuals)),
+                     KeyValue(key='detail', value=event.detail)]
+    return status
+
+
+def fault_array(events, stamp):
+    """A DiagnosticArray with one status per event (changed component)."""
+    array = DiagnosticArray()
+    array.header.stamp = seconds_to_stamp(stamp)
+    array.status = [fault_status(e) for e in events]
+    return array
+
+
+def event_from_status(status):
+    """The :class:`FaultEvent` a /youbot_fdi/faults status carries."""
+    values = {kv.key: kv.value for kv in status.values}
+    return FaultEvent(stamp=float(values.get('stamp', 'nan')),
+                      level=values.get('level') or LEVEL_NAMES.get(status.level, 'ERROR'),
+                      wheel=values.get('wheel') or None, fault=values.get('fault', 'unknown'),
+                      residuals=tuple(r for r in values.get('residuals', '').split(',') if r),
+                      detail=values.get('detail', ''))
+
+
+def labelled_vector(stamp, labels, values, bounds):
+    """A labelled vector as JointState: name = label, position = value, velocity = bound."""
+    return joint_state(stamp, labels, position=values, velocity=bounds)
+
+
+def message_seconds(msg):
+    """Header stamp of a stamped message [s]."""
+    return stamp_to_seconds(msg.header.stamp)
+

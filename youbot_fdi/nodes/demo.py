@@ -1,0 +1,176 @@
+"""The live demo: virtual youBot, driver shim and every FDI node as separate nodes over ROS 2 topics.
+
+All nodes share one process and one executor (python-can's virtual bus connects the base and the
+shim only within a process), but talk only through topics: /cmd_vel -> kinematics_bridge ->
+/wheel_commands -> driver_shim -> CAN -> virtual_youbot -> CAN -> /joint_states -> observer ->
+/youbot_fdi/residuals -> decision -> /youbot_fdi/faults, /diagnostics. A scripted driver publishes
+/cmd_vel, injects the fault into the virtual base at its time, and shows what happens.
+"""
+from dataclasses import dataclass
+import json
+import os
+import time
+import uuid
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Twist
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+import rclpy
+
+from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS
+from youbot_fdi.nodes.composed import FDI_NODES
+from youbot_fdi.nodes.conversions import event_from_status
+from youbot_fdi.nodes.driver_shim import DriverShimNode
+from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
+from youbot_fdi.structure.generate import wheel_suffix
+
+COMMAND_RATE = 20.0  # /cmd_vel [Hz]
+STATUS_PERIOD = 1.0  # console line [s]
+SETTLE_AFTER = 1.0  # keep running after the script ends [s]
+
+
+@dataclass(frozen=True)
+class DemoPlan:
+    """What the demo drives and injects."""
+
+    script: object  # DriveScript
+    fault: object  # fault name or None
+    wheel: str
+    fault_at: float  # [s] into the drive
+    console: bool = True
+    record: object = None  # a new rosbag2 directory for /joint_states and /wheel_commands
+
+
+class DemoDriverNode(Node):
+    """Publishes the scripted /cmd_vel, injects the fault, and shows wheel states and faults."""
+
+    def __init__(self, plan, base, **kwargs):
+        super().__init__('demo_driver', **kwargs)
+        self.plan, self.base = plan, base
+        self.cmd_pub = self.create_publisher(Twist, '/cmd_vel', 10)
+        self.create_subscription(DiagnosticArray, '/youbot_fdi/faults', self.on_faults, LATCHED_QOS)
+        self.create_subscription(JointState, '/joint_states', self.on_joint_states, SENSOR_QOS)
+        self.events, self.injected_at, self.last_state = [], None, None
+        self.start = None
+        self.recorder = None
+        if plan.record:
+            from youbot_fdi.bag.writer import RecordingWriter
+            from youbot_fdi.nodes.common import stamp_to_seconds
+            self._stamp = stamp_to_seconds
+            self.recorder = RecordingWriter(plan.record, base.model.wheel_names)
+            self.create_subscription(JointState, '/wheel_commands', self.on_wheel_commands, 10)
+        self.done = False
+        self._next_status = 0.0
+        self.create_timer(1.0 / COMMAND_RATE, self.on_timer)
+
+    def say(self, text):
+        if self.plan.console:
+            print(text, flush=True)
+
+    def elapsed(self):
+        return now_seconds(self) - self.start
+
+    def on_timer(self):
+        if self.start is None:
+            self.start = now_seconds(self)
+        t = self.elapsed()
+        vx, vy, wz = (float(v) for v in self.plan.script.twists([t])[0])
+        msg = Twist()
+        msg.linear.x, msg.linear.y, msg.angular.z = vx, vy, wz
+        self.cmd_pub.publish(msg)
+        if self.plan.fault and self.injected_at is None and t >= self.plan.fault_at:
+            self.base.inject(self.plan.fault, self.plan.wheel)
+            self.injected_at = now_seconds(self)
+            self.say(f'[{t:6.2f} s] >>> injected {self.plan.fault} on {self.plan.wheel}')
+        if t >= self._next_status:
+            self._next_status += STATUS_PERIOD
+            self.show_status(t)
+        if t > self.plan.script.duration + SETTLE_AFTER:
+            self.done = True
+
+    def on_joint_states(self, msg):
+        self.last_state = msg
+        if self.recorder is not None:
+            self.recorder.joint_state(self._stamp(msg.header.stamp), msg.position, msg.velocity,
+                                      msg.effort)
+
+    def on_wheel_commands(self, msg):
+        """Recorded with the receive time, as the observer stamps commands."""
+        if msg.velocity:
+            self.recorder.wheel_command(now_seconds(self), 'velocity', msg.velocity)
+        elif msg.effort:
+            self.recorder.wheel_command(now_seconds(self), 'effort', msg.effort)
+
+    def close(self):
+        if self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+
+    def show_status(self, t):
+        if self.last_state is None:
+            return
+        speeds = '  '.join(f'{wheel_suffix(n)} {v:+6.2f}' for n, v in
+                           zip(self.last_state.name, self.last_state.velocity))
+        faults = ', '.join(f'{e.wheel or "base"}: {e.fault}' for e in self.active()) or 'none'
+        self.say(f'[{t:6.2f} s] wheels [rad/s] {speeds}   faults: {faults}')
+
+    def active(self):
+        state = {}
+        for event in self.events:
+            state[event.wheel] = event
+        return [e for e in state.values() if e.level == 'ERROR']
+
+    def on_faults(self, msg):
+        for status in msg.status:
+            event = event_from_status(status)
+            if event in self.events:
+                continue
+            self.events.append(event)
+            t = event.stamp - self.start if self.start is not None else float('nan')
+            note = ''
+            if event.level == 'ERROR' and self.injected_at is not None:
+                note = f'   ({(event.stamp - self.injected_at) * 1000:.0f} ms after the injection)'
+            self.say(f'[{t:6.2f} s] *** {event.level} {event.wheel or "base"}: {event.fault}{note}')
+
+
+def run_demo(plan, events_path=None, max_wall_time=None):
+    """Run the live demo; returns (events, injected_at stamp or None)."""
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
+    context = Context()
+    rclpy.init(context=context)
+    executor = SingleThreadedExecutor(context=context)
+    channel = [Parameter('can_channel', value=f'demo-{uuid.uuid4()}')]
+    nodes = []
+    try:
+        base_node = VirtualYoubotNode(context=context, parameter_overrides=channel)
+        nodes.append(base_node)
+        nodes.append(DriverShimNode(context=context, parameter_overrides=channel))
+        nodes += [factory(context=context) for factory in FDI_NODES]
+        driver = DemoDriverNode(plan, base_node.base, context=context)
+        nodes.append(driver)
+        for node in nodes:
+            executor.add_node(node)
+        deadline = time.monotonic() + (max_wall_time or plan.script.duration * 3 + 30)
+        while not driver.done and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+        for _ in range(20):  # deliver the last fault messages
+            executor.spin_once(timeout_sec=0.01)
+        events = list(driver.events)
+        if events_path:
+            with open(events_path, 'w') as handle:
+                for event in events:
+                    handle.write(json.dumps(event.to_dict()) + '\n')
+        return events, driver.injected_at, driver.start
+    finally:
+        executor.shutdown()
+        for node in reversed(nodes):
+            close = getattr(node, 'close', None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)

@@ -1,0 +1,36 @@
+"""Print fault events from /youbot_fdi/faults as JSON lines (``youbot-fdi echo``)."""
+import json
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+import rclpy
+from rclpy.node import Node
+
+from youbot_fdi.nodes.common import LATCHED_QOS
+from youbot_fdi.nodes.conversions import event_from_status
+
+
+def echo_faults(topic='/youbot_fdi/faults', count=0, timeout=0.0, write=print):
+    """Subscribe (latched) and write each event; stop after ``count`` events or ``timeout`` [s]."""
+    rclpy.init()
+    node = Node('youbot_fdi_echo')
+    seen = []
+
+    def on_faults(msg):
+        for status in msg.status:
+            write(json.dumps(event_from_status(status).to_dict()))
+            seen.append(status)
+
+    node.create_subscription(DiagnosticArray, topic, on_faults, LATCHED_QOS)
+    deadline = time.monotonic() + timeout if timeout > 0 else None
+    try:
+        while rclpy.ok() and not (count and len(seen) >= count):
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return len(seen)

@@ -1,0 +1,67 @@
+"""``observer`` node: the dynamic-model observer and residual generator beside the driver shim.
+
+Subscribes /wheel_commands and /joint_states; publishes ``/youbot_fdi/predicted`` (JointState:
+wheel speeds predicted from the measured currents, driver convention) and
+``/youbot_fdi/residuals`` (a labelled vector as JointState: ``name`` the residual or signal,
+``position`` its value, ``velocity`` its bound; see ResidualFrame.to_labelled). Observer and residual
+generation are one core object (:class:`~youbot_fdi.fdi.residuals.ResidualGenerator`) because they
+share their state: splitting them into two nodes would double the work or add a hop.
+
+Parameters: the keys of ``config/fdi.yaml`` plus ``params_file`` (a ``youbot-fdi identify`` output).
+"""
+import sys
+
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from youbot_fdi.fdi.pipeline import configure
+from youbot_fdi.fdi.residuals import ResidualGenerator
+from youbot_fdi.fdi.samples import SampleMapper
+from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.nodes.common import (declare_settings, now_seconds, SENSOR_QOS, spin_nodes,
+                                     stamp_to_seconds, STREAM_QOS)
+from youbot_fdi.nodes.conversions import joint_state, labelled_vector
+
+NODE_NAME = 'observer'
+
+
+class ObserverNode(Node):
+    """Thin adapter over :class:`~youbot_fdi.fdi.residuals.ResidualGenerator`."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        params_file = self.declare_parameter('params_file', '').value
+        self.model, self.settings = configure(declare_settings(self, FdiSettings), params_file)
+        self.names = self.model.wheel_names
+        self.generator = ResidualGenerator(self.model, self.settings)
+        self.mapper = SampleMapper(self.names)
+        self.predicted_pub = self.create_publisher(JointState, '/youbot_fdi/predicted', STREAM_QOS)
+        self.residual_pub = self.create_publisher(JointState, '/youbot_fdi/residuals', STREAM_QOS)
+        self.create_subscription(JointState, '/wheel_commands', self.on_command, SENSOR_QOS)
+        self.create_subscription(JointState, '/joint_states', self.on_joint_states, SENSOR_QOS)
+
+    def on_command(self, msg):
+        sample = self.mapper.command_sample(now_seconds(self), msg.name, msg.velocity, msg.effort)
+        if sample is not None:
+            self.generator.command(sample)
+
+    def on_joint_states(self, msg):
+        sample = self.mapper.joint_sample(stamp_to_seconds(msg.header.stamp), msg.name,
+                                          msg.position, msg.velocity, msg.effort)
+        if sample is None:
+            return
+        frame = self.generator.update(sample)
+        if frame is None:
+            return
+        from_currents, _ = self.generator.predictions()
+        self.predicted_pub.publish(joint_state(frame.stamp, self.names, velocity=from_currents))
+        self.residual_pub.publish(labelled_vector(frame.stamp, *frame.to_labelled(self.names)))
+
+
+def main(args=None):
+    """Entry point of ``ros2 run youbot_fdi observer``."""
+    return spin_nodes([ObserverNode], args=args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
