@@ -52,3 +52,44 @@ def test_demo_command_writes_contract_events(tmp_path, capsys):
     errors = [line for line in lines if line['level'] == 'ERROR']
     assert errors and errors[0]['wheel'] == 'wheel_joint_fr'
     assert {'stamp', 'level', 'wheel', 'fault'} <= set(errors[0])
+
+
+def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
+    """`youbot-fdi play` in another process, the FDI nodes on use_sim_time in this one."""
+    import subprocess
+    import sys
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.parameter import Parameter
+    from ros_harness import Harness
+    from youbot_fdi.model import load_model
+    from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds
+    from youbot_fdi.nodes.conversions import event_from_status
+    from youbot_fdi.nodes.decision import DecisionNode
+    from youbot_fdi.nodes.observer import ObserverNode
+    from youbot_fdi.recordings import DEFAULT_START_STAMP, record_drive
+
+    record_drive(tmp_path / 'rec', load_model('youbot'), SCRIPT.scaled_to(6.0), fault='stuck',
+                 wheel='wheel_joint_br', fault_time=3.5)
+    harness = Harness()
+    try:
+        sim_time = [Parameter('use_sim_time', value=True)]
+        harness.add(ObserverNode(context=harness.context, parameter_overrides=sim_time))
+        decision = harness.add(DecisionNode(context=harness.context, parameter_overrides=sim_time))
+        events = []
+        harness.probe.create_subscription(
+            DiagnosticArray, '/youbot_fdi/faults',
+            lambda msg: events.extend(event_from_status(s) for s in msg.status), LATCHED_QOS)
+        player = subprocess.Popen([sys.executable, '-m', 'youbot_fdi.cli.main', 'play',
+                                   str(tmp_path / 'rec')], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True)
+        try:
+            assert harness.spin_until(lambda: any(e.level == 'ERROR' for e in events), 30.0)
+            sim_now = now_seconds(decision)
+        finally:
+            player.wait(timeout=30)
+        error = [e for e in events if e.level == 'ERROR'][0]
+        assert error.wheel == 'wheel_joint_br' and error.fault == 'stuck'
+        assert error.stamp - (DEFAULT_START_STAMP + 3.5) <= 0.1
+        assert abs(sim_now - error.stamp) < 5.0  # the node clock follows /clock, not the wall
+    finally:
+        harness.close()

@@ -122,10 +122,26 @@ def bench_can(cycles=200):
                         'raw virtual-bus exchange of 16 frames', raw)]
 
 
+def bench_nodes(seconds=5.0):
+    """CPU share of the FDI node suite at 100 Hz and its latency, against a bare relay node."""
+    try:
+        from youbot_fdi.nodes.bench import bench_node_suite
+    except ImportError as err:
+        return [BenchResult(f'node suite (skipped: {err})', float('nan'), '', 'relay', float('nan'))]
+    suite, relay, suite_latency, relay_latency = bench_node_suite(seconds)
+    return [BenchResult('nodes: bridge+observer+decision CPU at 100 Hz', suite * 100, '% core',
+                        'bare JointState relay', relay * 100),
+            BenchResult('nodes: /joint_states -> decision, p50', np.median(suite_latency) * 1000, 'ms',
+                        'relay p50', np.median(relay_latency) * 1000),
+            BenchResult('nodes: /joint_states -> decision, p99', np.percentile(suite_latency, 99) * 1000,
+                        'ms', 'relay p99', np.percentile(relay_latency, 99) * 1000)]
+
+
 def run_all(progress=print):
     """Run every case; returns the results."""
     results = []
-    for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can)):
+    for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can),
+                        ('nodes', bench_nodes)):
         progress(f'running {label} ...')
         outcome = case()
         results.extend(outcome if isinstance(outcome, list) else [outcome])

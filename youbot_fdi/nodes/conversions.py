@@ -1,5 +1,8 @@
 """Message <-> core conversions shared by the nodes (and `youbot-fdi echo`)."""
+from array import array
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
 from sensor_msgs.msg import JointState
 
 from youbot_fdi.fdi.decision import FaultEvent
@@ -16,9 +19,9 @@ def joint_state(stamp, names, position=(), velocity=(), effort=()):
     msg = JointState()
     msg.header.stamp = seconds_to_stamp(stamp)
     msg.name = list(names)
-    msg.position = [float(v) for v in position]
-    msg.velocity = [float(v) for v in velocity]
-    msg.effort = [float(v) for v in effort]
+    msg.position = array('d', np.asarray(position, dtype=float).tobytes())
+    msg.velocity = array('d', np.asarray(velocity, dtype=float).tobytes())
+    msg.effort = array('d', np.asarray(effort, dtype=float).tobytes())
     return msg
 
 
