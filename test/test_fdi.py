@@ -8,17 +8,17 @@ import sys
 
 import numpy as np
 import pytest
-import yaml
 
 from youbot_fdi.bag import RecordingError, RecordingReader, RecordingWriter
 from youbot_fdi.cli.main import main
 from youbot_fdi.cli.replay import build_pipeline
-from youbot_fdi.config_paths import config_dir
 from youbot_fdi.model import load_model, load_profile
-from youbot_fdi.model.scenario import DriveScript
+from youbot_fdi.model.scenario import DriveScript, load_script
 from youbot_fdi.recordings import DEFAULT_START_STAMP, record_drive
+from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.settings import load_settings
 
-SCRIPT = DriveScript.from_config(yaml.safe_load((config_dir() / 'demo.yaml').read_text())['segments'])
+_, SCRIPT = load_script()
 #: fault, wheel, injection time [s], time it becomes observable [s] (runaway: the next command change)
 CASES = [('torque_loss', 'wheel_joint_fr', 3.0, 3.0), ('friction', 'wheel_joint_bl', 5.0, 5.0),
          ('stuck', 'wheel_joint_br', 7.0, 7.0), ('runaway', 'wheel_joint_fl', 10.3, 10.5),
@@ -40,7 +40,7 @@ def recordings(tmp_path_factory, model):
     return made
 
 
-CLASSIFICATION_WINDOW = 0.5  # [s] config/fdi.yaml
+CLASSIFICATION_WINDOW = load_settings(FdiSettings, 'fdi').classification_window  # [s]
 
 
 def settled(alarms):

@@ -2,18 +2,16 @@
 import json
 
 import pytest
-import yaml
 
 pytest.importorskip('rclpy')
 
 from youbot_fdi.bag import RecordingReader  # noqa: E402
 from youbot_fdi.cli.main import main  # noqa: E402
 from youbot_fdi.cli.replay import build_pipeline  # noqa: E402
-from youbot_fdi.config_paths import config_dir  # noqa: E402
-from youbot_fdi.model.scenario import DriveScript  # noqa: E402
+from youbot_fdi.model.scenario import load_script  # noqa: E402
 from youbot_fdi.nodes.demo import DemoPlan, run_demo  # noqa: E402
 
-SCRIPT = DriveScript.from_config(yaml.safe_load((config_dir() / 'demo.yaml').read_text())['segments'])
+_, SCRIPT = load_script()
 LIVE_DELAY = 0.15  # [s] live detection allows for executor scheduling on a shared 2-core machine
 
 

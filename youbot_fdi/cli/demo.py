@@ -1,11 +1,6 @@
 """``youbot-fdi demo``: the main job, live: a virtual youBot, the driver shim and every FDI node."""
-from pathlib import Path
-
-import yaml
-
-from youbot_fdi.config_paths import config_dir
 from youbot_fdi.faults import INJECTABLE
-from youbot_fdi.model.scenario import DriveScript
+from youbot_fdi.model.scenario import load_script
 
 NAME = 'demo'
 DEFAULT_FAULT = 'torque_loss'
@@ -36,10 +31,7 @@ def add_parser(subparsers):
 
 def run(args):
     from youbot_fdi.nodes.demo import DemoPlan, run_demo
-    path = Path(args.script) if args.script else config_dir() / 'demo.yaml'
-    script = DriveScript.from_config((yaml.safe_load(path.read_text()) or {}).get('segments'), str(path))
-    if args.duration:
-        script = script.scaled_to(args.duration)
+    _, script = load_script(args.script, args.duration)
     fault = None if args.fault == NONE else args.fault
     plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record)
     print(f'youbot-fdi demo: {script.duration:.1f} s drive, '

@@ -1,12 +1,7 @@
 """``youbot-fdi record``: record a simulated drive (optionally with a fault) as a rosbag2 recording."""
-from pathlib import Path
-
-import yaml
-
-from youbot_fdi.config_paths import config_dir
 from youbot_fdi.faults import INJECTABLE
 from youbot_fdi.model.profile import load_model
-from youbot_fdi.model.scenario import DriveScript
+from youbot_fdi.model.scenario import load_script
 from youbot_fdi.recordings import record_drive
 
 NAME = 'record'
@@ -32,10 +27,7 @@ def add_parser(subparsers):
 
 
 def run(args):
-    path = Path(args.script) if args.script else config_dir() / 'demo.yaml'
-    script = DriveScript.from_config((yaml.safe_load(path.read_text()) or {}).get('segments'), str(path))
-    if args.duration:
-        script = script.scaled_to(args.duration)
+    _, script = load_script(args.script, args.duration)
     truth = record_drive(args.output, load_model(args.profile), script, mode=args.mode,
                          fault=args.fault, wheel=args.wheel if args.fault else None,
                          fault_time=args.at, storage=args.storage)

@@ -8,13 +8,11 @@ from pathlib import Path
 import time
 
 import numpy as np
-import yaml
 
-from youbot_fdi.config_paths import config_dir
 from youbot_fdi.model.firmware import ControlMode
 from youbot_fdi.model.kinematics import integrate_pose, Odometry
 from youbot_fdi.model.profile import load_model
-from youbot_fdi.model.scenario import DriveScript
+from youbot_fdi.model.scenario import load_script
 from youbot_fdi.model.simulation import BaseSimulator
 
 NAME = 'simulate'
@@ -39,11 +37,6 @@ def add_parser(subparsers):
                         help=f'where the figure goes (default: {DEFAULT_OUTPUT_DIR})')
     parser.add_argument('--no-plot', action='store_true', help='do not write the figure')
     parser.set_defaults(run=run)
-
-
-def _load_script(path):
-    data = yaml.safe_load(Path(path).read_text()) or {}
-    return data.get('profile', 'youbot'), DriveScript.from_config(data.get('segments'), str(path))
 
 
 def simulate_drive(model, script):
@@ -137,10 +130,7 @@ def plot(model, run_data, path):
 
 
 def run(args):
-    script_path = Path(args.script) if args.script else config_dir() / 'demo.yaml'
-    profile_name, script = _load_script(script_path)
-    if args.duration is not None:
-        script = script.scaled_to(args.duration)
+    profile_name, script = load_script(args.script, args.duration)
     model = load_model(args.profile or profile_name)
     started = time.perf_counter()
     run_data = simulate_drive(model, script)

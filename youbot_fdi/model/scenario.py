@@ -1,9 +1,15 @@
 """Scripted drives: a sequence of base twists held for given durations (demo, benchmarks, tests)."""
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+import yaml
 
+from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
+
+DEFAULT_SCRIPT = 'demo.yaml'
+DEFAULT_PROFILE = 'youbot'
 
 TWIST_KEYS = ('vx', 'vy', 'wz')
 
@@ -74,3 +80,21 @@ class DriveScript:
         ends = np.cumsum([s.duration for s in self.segments])
         table = np.vstack([np.array([s.twist for s in self.segments]), np.zeros((1, 3))])
         return table[np.searchsorted(ends, times, side='right')]
+
+
+def load_script(path=None, duration=None):
+    """(profile name, DriveScript) from a script YAML (default ``config/demo.yaml``).
+
+    ``duration`` [s] stretches or shrinks the script to that length.
+    """
+    path = Path(path) if path else config_dir() / DEFAULT_SCRIPT
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        msg = f'{path}: cannot read the drive script: {err}'
+        raise ConfigError(msg) from err
+    if not isinstance(data, dict):
+        msg = f'{path}: a drive script is a mapping with segments'
+        raise ConfigError(msg)
+    script = DriveScript.from_config(data.get('segments'), str(path))
+    return data.get('profile', DEFAULT_PROFILE), (script.scaled_to(duration) if duration else script)

@@ -147,28 +147,28 @@ def _as_bytes(data, what):
         raise TmclDecodeError(msg) from err
 
 
-def decode_request_serial(frame):
-    """Parse a 9-byte serial request; raises :class:`TmclDecodeError` on length or checksum."""
-    frame = _as_bytes(frame, 'a serial request')
+def _checked_serial_frame(frame, what):
+    """``frame`` as bytes after the length and checksum checks of a 9-byte serial frame."""
+    frame = _as_bytes(frame, f'a serial {what}')
     if len(frame) != SERIAL_FRAME_LENGTH:
-        msg = f'a serial TMCL request has {SERIAL_FRAME_LENGTH} bytes, got {len(frame)}'
+        msg = f'a serial TMCL {what} has {SERIAL_FRAME_LENGTH} bytes, got {len(frame)}'
         raise TmclDecodeError(msg)
     if checksum(frame[:8]) != frame[8]:
         msg = f'bad checksum 0x{frame[8]:02X}, expected 0x{checksum(frame[:8]):02X}'
         raise TmclDecodeError(msg)
+    return frame
+
+
+def decode_request_serial(frame):
+    """Parse a 9-byte serial request; raises :class:`TmclDecodeError` on length or checksum."""
+    frame = _checked_serial_frame(frame, 'request')
     module, command, type_, motor = frame[:4]
     return TmclRequest(module, command, type_, motor, struct.unpack(VALUE_FORMAT, frame[4:8])[0])
 
 
 def decode_reply_serial(frame):
-    """Parse a 9-byte serial reply."""
-    frame = _as_bytes(frame, 'a serial reply')
-    if len(frame) != SERIAL_FRAME_LENGTH:
-        msg = f'a serial TMCL reply has {SERIAL_FRAME_LENGTH} bytes, got {len(frame)}'
-        raise TmclDecodeError(msg)
-    if checksum(frame[:8]) != frame[8]:
-        msg = f'bad checksum 0x{frame[8]:02X}, expected 0x{checksum(frame[:8]):02X}'
-        raise TmclDecodeError(msg)
+    """Parse a 9-byte serial reply; raises :class:`TmclDecodeError` on length or checksum."""
+    frame = _checked_serial_frame(frame, 'reply')
     host, module, status, command = frame[:4]
     return TmclReply(host, module, status, command, struct.unpack(VALUE_FORMAT, frame[4:8])[0])
 
