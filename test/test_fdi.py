@@ -227,3 +227,24 @@ def test_measurement_delay_delays_what_the_modules_report(model):
     finally:
         prompt.close()
         late.close()
+
+
+def test_identify_and_replay_on_recordings_from_an_independent_simulator(tmp_path):
+    """50 Hz, extra caster joints, scrambled order, RK4 plant with other parameters and Coulomb
+    friction: identify on a nominal drive, then the faults are found on the right wheel."""
+    from independent_sim import simulate
+    drive = [(0.3, 0.0, 0.0, 2.0), (0.0, 0.0, 0.0, 0.6), (0.0, 0.25, 0.0, 2.0), (0.0, 0.0, 0.9, 2.0),
+             (0.2, -0.2, 0.0, 2.0), (-0.25, 0.1, -0.5, 2.0), (0.0, 0.0, 0.0, 1.0)]
+    simulate(tmp_path / 'nominal', drive, seed=1)
+    params = tmp_path / 'params.yaml'
+    assert main(['identify', str(tmp_path / 'nominal'), '--output', str(params)]) == 0
+    assert replay(tmp_path / 'nominal', params) == []
+    other_drive = drive[3:] + drive[:3]  # starts with a rotation: every wheel turns until 2 s
+    at = 1.0
+    for fault, wheel, name in (('stuck', 2, 'wheel_joint_bl'), ('torque_loss', 1, 'wheel_joint_fr')):
+        start = simulate(tmp_path / fault, other_drive, fault=fault, wheel=wheel, fault_time=at, seed=2)
+        alarms = [e for e in replay(tmp_path / fault, params) if e.level == 'ERROR']
+        assert alarms, f'{fault} not detected'
+        assert {e.wheel for e in alarms} == {name}
+        assert settled(alarms) == fault
+        assert 0.0 <= alarms[0].stamp - (start + at) <= 0.12  # 50 Hz: a few samples
