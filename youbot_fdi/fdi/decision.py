@@ -236,6 +236,8 @@ class DecisionMaker:
             history.append((frame.values['torque'][w], frame.torque[w], frame.velocity[w], frame.stamp))
             while history and frame.stamp - history[0][3] > window:
                 history.popleft()
+        if not self.alarm.any() and all(c.level == OK for c in self.components.values()):
+            return []  # nothing latched, nothing to clear: no event is possible (the quiet path)
         diagnoses = self._diagnose(frame, z)
         events = []
         for w, name in enumerate(self.wheel_names):
