@@ -91,3 +91,10 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
         assert abs(sim_now - error.stamp) < 5.0  # the node clock follows /clock, not the wall
     finally:
         harness.close()
+
+
+def test_fault_free_live_drive_raises_no_alarm():
+    plan = DemoPlan(SCRIPT.scaled_to(6.0), None, 'wheel_joint_fl', 0.0, console=False)
+    events, injected_at, start = run_demo(plan)
+    assert injected_at is None and start is not None
+    assert alarms(events) == []

@@ -89,3 +89,18 @@ def test_colcon_build_installs_executables_and_ament_marker(tmp_path):
                             text=True, timeout=60, env=run_env, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert str(install / 'share' / 'youbot_fdi' / 'config') in result.stdout
+
+
+def test_every_node_parameter_file_loads_into_its_settings():
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.settings import load_settings, node_parameters
+    from youbot_fdi.tmcm.driver import DriverSettings
+    from youbot_fdi.tmcm.virtual_base import VirtualBaseSettings
+    import yaml
+    assert load_settings(DriverSettings, 'driver_shim').cycle_rate == 100.0
+    assert load_settings(VirtualBaseSettings, 'virtual_youbot').module_ids == (17, 18, 19, 20)
+    for node in ('observer', 'decision'):  # config/fdi.yaml applies to every node (/**)
+        assert load_settings(FdiSettings, node, REPO / 'config' / 'fdi.yaml').persistence == 3
+    bridge = node_parameters(yaml.safe_load((REPO / 'config' / 'kinematics_bridge.yaml').read_text()),
+                             'kinematics_bridge')
+    assert set(bridge) == {'profile', 'max_wheel_speed', 'odom_frame', 'base_frame'}
