@@ -151,12 +151,11 @@ def simulate_from_commands(model, arrays):
             generator.command(commands[index])
             index += 1
         if k == 0:
-            generator._start(stamp, arrays.position[0], arrays.velocity[0], arrays.torque[0])
+            generator.start(stamp, arrays.position[0], arrays.velocity[0], arrays.torque[0])
             predicted[0] = arrays.velocity[0]
             continue
-        mode, target = generator._command_in_force(stamp)
-        generator._predict_command_path(stamp - arrays.time[k - 1], mode, target, arrays.velocity[k])
-        predicted[k] = generator._cmd_speed
+        predicted[k] = generator.predict_command_path(stamp, stamp - arrays.time[k - 1],
+                                                      arrays.velocity[k])
     return predicted
 
 

@@ -189,6 +189,14 @@ class ResidualGenerator:
         """Forget the state (after a gap in the data)."""
         self._last = None
 
+    def predict_command_path(self, stamp, dt, velocity):
+        """Advance only the command-path prediction by ``dt`` [s] to ``stamp``; returns the
+        predicted wheel speeds [rad/s] (kinematic convention). ``velocity`` is the measured speed
+        (kinematic), used in current mode where the path follows the measurement."""
+        mode, target = self._command_in_force(stamp)
+        self._predict_command_path(dt, mode, target, velocity)
+        return self._cmd_speed
+
     def predictions(self):
         """(from currents, from commands): the observer's predicted wheel speeds [rad/s], driver
         convention, or None before the first sample."""
@@ -196,7 +204,8 @@ class ResidualGenerator:
             return None
         return self.signs * self._observer, self.signs * self._cmd_speed
 
-    def _start(self, stamp, position, velocity, torque):
+    def start(self, stamp, position, velocity, torque):
+        """(Re)start from one sample: kinematic convention, [s], [rad], [rad/s], [N·m]."""
         mode, target = self._command_in_force(stamp)
         self._observer = velocity.copy()
         self._cmd_speed = velocity.copy()
@@ -250,13 +259,13 @@ class ResidualGenerator:
         torque = self.signs * sample.effort
         self._torque_known = not np.isnan(torque).any()
         if self._last is None:
-            self._start(stamp, position, velocity, torque)
+            self.start(stamp, position, velocity, torque)
             return None
         last_stamp, last_position, last_velocity, last_torque = self._last
         dt = stamp - last_stamp
         if dt <= 0.0 or dt > self.settings.comm_timeout:
             self.skipped += 1
-            self._start(stamp, position, velocity, torque)
+            self.start(stamp, position, velocity, torque)
             return None
         s = self.settings
         phi, gamma, gamma_inv = self._discrete(dt)
