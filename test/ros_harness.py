@@ -45,10 +45,5 @@ class Harness:
             self.executor.spin_once(timeout_sec=0.005)
 
     def close(self):
-        self.executor.shutdown()
-        for node in reversed(self.nodes):
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
-            node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+        from youbot_fdi.nodes.common import shutdown_nodes
+        shutdown_nodes(self.executor, self.nodes, self.context)

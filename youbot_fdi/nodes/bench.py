@@ -13,7 +13,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.nodes.common import SENSOR_QOS, stamp_to_seconds, STREAM_QOS
+from youbot_fdi.nodes.common import SENSOR_QOS, shutdown_nodes, stamp_to_seconds, STREAM_QOS
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.nodes.kinematics_bridge import KinematicsBridgeNode
@@ -79,10 +79,7 @@ def _run(make_nodes, samples, names, seconds):
         latency = [done[s] - feeder.sent[s] for s in done if s in feeder.sent]
         return share, np.array(latency)
     finally:
-        executor.shutdown()
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        shutdown_nodes(executor, nodes, context)
 
 
 class _TimedDecision(DecisionNode):

@@ -71,6 +71,17 @@ def health_to_diagnostics(node, records, component, hardware_prefix=''):
     return array
 
 
+def shutdown_nodes(executor, nodes, context=None):
+    """Stop ``executor``, close (if they can) and destroy ``nodes`` newest first, shut rclpy down."""
+    executor.shutdown()
+    for node in reversed(nodes):
+        close = getattr(node, 'close', None)
+        if close is not None:
+            close()
+        node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
 def spin_nodes(factories, args=None):
     """Create nodes with ``factories`` (callables -> Node) and spin them in one executor.
 
@@ -94,11 +105,5 @@ def spin_nodes(factories, args=None):
         print(f'error: {err}', file=sys.stderr)
         status = 2
     finally:
-        executor.shutdown()
-        for node in nodes:
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
-            node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_nodes(executor, nodes)
     return status

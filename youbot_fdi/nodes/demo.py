@@ -21,7 +21,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS
+from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes
 from youbot_fdi.nodes.composed import FDI_NODES
 from youbot_fdi.nodes.conversions import event_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
@@ -167,10 +167,4 @@ def run_demo(plan, events_path=None, max_wall_time=None):
                     handle.write(json.dumps(event.to_dict()) + '\n')
         return events, driver.injected_at, driver.start
     finally:
-        executor.shutdown()
-        for node in reversed(nodes):
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        shutdown_nodes(executor, nodes, context)
