@@ -53,11 +53,7 @@ def settled(alarms):
 
 def replay(path, params=None):
     _, pipeline = build_pipeline(params)
-    events = []
-    with RecordingReader(path, pipeline.model.wheel_names) as reader:
-        for sample in reader.samples():
-            events += pipeline.feed(sample)
-    return events
+    return pipeline.replay(path).events
 
 
 def test_nominal_drive_raises_no_alarm(recordings):

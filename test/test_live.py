@@ -5,7 +5,6 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from youbot_fdi.bag import RecordingReader  # noqa: E402
 from youbot_fdi.cli.main import main  # noqa: E402
 from youbot_fdi.cli.replay import build_pipeline  # noqa: E402
 from youbot_fdi.model.scenario import load_script  # noqa: E402
@@ -31,11 +30,7 @@ def test_injected_fault_is_detected_and_isolated_live(tmp_path):
 
     # Offline replay of what the nodes saw gives the same decisions.
     _, pipeline = build_pipeline()
-    replayed = []
-    with RecordingReader(tmp_path / 'live', pipeline.model.wheel_names) as reader:
-        for sample in reader.samples():
-            replayed += pipeline.feed(sample)
-    offline = alarms(replayed)
+    offline = alarms(pipeline.replay(tmp_path / 'live').events)
     assert [(e.wheel, e.fault) for e in offline] == [(e.wheel, e.fault) for e in found]
     assert offline[0].stamp == pytest.approx(found[0].stamp, abs=0.011)  # within one sample
 

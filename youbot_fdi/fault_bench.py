@@ -123,10 +123,7 @@ def _replay(path, params):
     from youbot_fdi.cli.replay import build_pipeline
     model, pipeline = build_pipeline(params)
     started = time.perf_counter()
-    events = []
-    with RecordingReader(path, model.wheel_names) as reader:
-        for sample in reader.samples():
-            events += pipeline.feed(sample)
+    events = pipeline.replay(path).events
     replay_time = time.perf_counter() - started
     started = time.perf_counter()
     with RecordingReader(path, model.wheel_names) as reader:

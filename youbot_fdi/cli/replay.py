@@ -3,7 +3,7 @@ from pathlib import Path
 import sys
 import time
 
-from youbot_fdi.bag.reader import JOINT_STATES, RecordingError, RecordingReader, WHEEL_COMMANDS
+from youbot_fdi.bag.reader import JOINT_STATES, RecordingError, WHEEL_COMMANDS
 from youbot_fdi.fdi.pipeline import configure, FdiPipeline
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.settings import load_settings
@@ -53,23 +53,20 @@ def run(args):
     error = None
     started = time.perf_counter()
     with events_path.open('w') as events_file:
-        try:
-            with RecordingReader(args.bag, model.wheel_names, args.joint_topic,
-                                 args.command_topic) as reader:
-                total = reader.message_count
-                show = total >= PROGRESS_MIN_MESSAGES and sys.stderr.isatty()
-                for done, sample in enumerate(reader.samples(), 1):
-                    for event in pipeline.feed(sample):
-                        events_file.write(event.to_json() + '\n')
-                        events_file.flush()
-                        found.append(event)
-                    if show and done % PROGRESS_EVERY == 0:
-                        _progress(done, total, started)
-                if show:
-                    _progress(total, total, started)
+        def keep(event):
+            events_file.write(event.to_json() + '\n')
+            events_file.flush()
+            found.append(event)
+
+        def progress(done, total):
+            if total >= PROGRESS_MIN_MESSAGES and sys.stderr.isatty() \
+                    and (done % PROGRESS_EVERY == 0 or done == total):
+                _progress(done, total, started)
+                if done == total:
                     print(file=sys.stderr)
-                counters = dict(reader.counters)
-                has_commands = reader.has_commands
+
+        try:
+            result = pipeline.replay(args.bag, args.joint_topic, args.command_topic, keep, progress)
         except RecordingError as err:
             error = err
     elapsed = time.perf_counter() - started
@@ -78,12 +75,13 @@ def run(args):
               file=sys.stderr)
         return 1
     alarms = [e for e in found if e.level == 'ERROR']
+    counters = result.counters
     print(f'{args.bag}: {counters["joint_states"]} joint states, {counters["wheel_commands"]} '
           f'commands in {elapsed:.2f} s; {len(alarms)} alarms, {len(found)} events -> {events_path}')
     skipped = {k: v for k, v in counters.items() if k.startswith('skipped') and v}
     if skipped:
         print(f'skipped messages: {skipped}')
-    if not has_commands:
+    if not result.has_commands:
         print(f'note: no {args.command_topic}: faults in the command path (runaway) cannot be seen')
     for event in alarms:
         print(f'  {event.stamp:.3f} {event.level} {event.wheel} {event.fault}')

@@ -3,6 +3,7 @@
 The same object serves the offline replay and the live nodes, so a recording replayed offline
 gives the same decisions as the nodes gave live.
 """
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
@@ -42,6 +43,15 @@ def load_residual_data(path=None):
         msg = f'{path}: not a residual set (needs faults and residuals)'
         raise ConfigError(msg)
     return data
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """What a replay of a recording found."""
+
+    events: list  # FaultEvent, in order
+    counters: dict  # the reader's message counters (used, skipped ...)
+    has_commands: bool  # the recording had the command topic
 
 
 class FdiPipeline:
@@ -93,3 +103,24 @@ class FdiPipeline:
             self.command(sample)
             return []
         return self.joint_state(sample)
+
+    def replay(self, path, joint_topic=None, command_topic=None, on_event=None, on_progress=None):
+        """Feed a rosbag2 recording through the pipeline, streaming.
+
+        ``on_event(event)`` is called as each event is found (so a caller keeps them even when the
+        recording breaks part-way and :class:`~youbot_fdi.bag.reader.RecordingError` is raised);
+        ``on_progress(done, total)`` after every message.
+        """
+        from youbot_fdi.bag.reader import JOINT_STATES, RecordingReader, WHEEL_COMMANDS
+        events = []
+        with RecordingReader(path, self.model.wheel_names, joint_topic or JOINT_STATES,
+                             command_topic or WHEEL_COMMANDS) as reader:
+            total = reader.message_count
+            for done, sample in enumerate(reader.samples(), 1):
+                for event in self.feed(sample):
+                    events.append(event)
+                    if on_event is not None:
+                        on_event(event)
+                if on_progress is not None:
+                    on_progress(done, total)
+            return ReplayResult(events, dict(reader.counters), reader.has_commands)
