@@ -24,6 +24,7 @@ import scipy.signal
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.residuals import ResidualGenerator
+from youbot_fdi.fdi.samples import JointSample
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
 
@@ -139,17 +140,23 @@ def simulate_from_currents(model, arrays):
     return predicted
 
 
-def simulate_from_commands(model, arrays):
-    """Wheel speeds predicted from the velocity commands through the firmware loop (§5.2.3)."""
-    from youbot_fdi.fdi.settings import FdiSettings
-    generator = ResidualGenerator(model, FdiSettings())
-    predicted = np.empty_like(arrays.velocity)
+def _commanded(arrays, generator):
+    """Yield (k, stamp) over the samples, first handing ``generator`` the commands up to each."""
     commands = sorted(arrays.commands, key=lambda c: c.stamp)
     index = 0
     for k, stamp in enumerate(arrays.time):
         while index < len(commands) and commands[index].stamp <= stamp:
             generator.command(commands[index])
             index += 1
+        yield k, stamp
+
+
+def simulate_from_commands(model, arrays):
+    """Wheel speeds predicted from the velocity commands through the firmware loop (§5.2.3)."""
+    from youbot_fdi.fdi.settings import FdiSettings
+    generator = ResidualGenerator(model, FdiSettings())
+    predicted = np.empty_like(arrays.velocity)
+    for k, stamp in _commanded(arrays, generator):
         if k == 0:
             generator.start(stamp, arrays.position[0], arrays.velocity[0], arrays.torque[0])
             predicted[0] = arrays.velocity[0]
@@ -198,14 +205,8 @@ def noise_floors(model, arrays, settings):
     """Per residual family, the floor that keeps this (nominal) recording inside its bounds."""
     generator = ResidualGenerator(model, settings)
     needed = {family: 0.0 for family in SIGMA_FAMILIES}
-    commands = sorted(arrays.commands, key=lambda c: c.stamp)
-    index = 0
-    from youbot_fdi.bag.reader import JointSample
     signs = model.kinematics.drive_signs
-    for k, stamp in enumerate(arrays.time):
-        while index < len(commands) and commands[index].stamp <= stamp:
-            generator.command(commands[index])
-            index += 1
+    for k, stamp in _commanded(arrays, generator):
         frame = generator.update(JointSample(stamp, signs * arrays.position[k],
                                              signs * arrays.velocity[k], signs * arrays.torque[k]))
         if frame is None:
