@@ -55,8 +55,13 @@ def now_seconds(node):
     return node.get_clock().now().nanoseconds * 1e-9
 
 
-def health_to_diagnostics(node, records, component, hardware_prefix=''):
-    """Convert core :class:`~youbot_fdi.tmcm.driver.Health` records to a DiagnosticArray."""
+def health_to_diagnostics(node, records, component, hardware_ids=None, default_hardware=''):
+    """Convert core :class:`~youbot_fdi.tmcm.driver.Health` records to a DiagnosticArray.
+
+    ``hardware_ids`` maps a record name to its hardware id; others get ``default_hardware``
+    (or their own name).
+    """
+    hardware_ids = hardware_ids or {}
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     array = DiagnosticArray()
     array.header.stamp = node.get_clock().now().to_msg()
@@ -65,7 +70,7 @@ def health_to_diagnostics(node, records, component, hardware_prefix=''):
         status.level = bytes([int(record.level)])
         status.name = f'{NAME_PREFIX}/{component}: {record.name}'
         status.message = record.message
-        status.hardware_id = f'{hardware_prefix}{record.name}' if hardware_prefix else record.name
+        status.hardware_id = hardware_ids.get(record.name, default_hardware or record.name)
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in record.values.items()]
         array.status.append(status)
     return array

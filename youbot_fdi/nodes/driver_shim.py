@@ -34,6 +34,8 @@ class DriverShimNode(Node):
         self.settings = declare_settings(self, DriverSettings)
         self.model = load_model(self.settings.profile)
         self.names = list(self.model.wheel_names)
+        self.hardware_ids = {name: f'tmcm-0x{module:02x}' for name, module in
+                             zip(self.names, self.settings.module_ids)}
         bus = open_bus(self.settings.can_interface, self.settings.can_channel)
         self.driver = BaseDriver(self.model, bus, self.settings, clock=lambda: now_seconds(self),
                                  owns_bus=True)
@@ -93,12 +95,8 @@ class DriverShimNode(Node):
         self.joint_pub.publish(msg)
 
     def publish_diagnostics(self):
-        hardware = {name: f'tmcm-0x{module:02x}' for name, module in
-                    zip(self.names, self.settings.module_ids)}
-        records = self.driver.health()
-        array = health_to_diagnostics(self, records, NODE_NAME)
-        for status, record in zip(array.status, records):
-            status.hardware_id = hardware.get(record.name, f'can:{self.settings.can_channel}')
+        array = health_to_diagnostics(self, self.driver.health(), NODE_NAME, self.hardware_ids,
+                                      f'can:{self.settings.can_channel}')
         self.diag_pub.publish(array)
 
     def on_switch_on(self, _request, response):
