@@ -1,13 +1,19 @@
 """Read rosbag2 recordings (sqlite3 or mcap) into wheel samples, streaming, with rosbags.
 
+:meth:`RecordingReader.chunks` reads a recording in chunks of messages and decodes the messages of
+a chunk that share a layout as one block (:mod:`youbot_fdi.bag.cdr`); rosbags decodes the rest.
 Messages are matched to the model's wheels **by joint name**. Bad messages (NaN, arrays shorter
 than the names, a wheel missing) are skipped and counted, never fatal; an unreadable recording or
 one without the joint-state topic raises :class:`RecordingError` with a one-line reason.
 """
 from pathlib import Path
 
+import numpy as np
+
+from youbot_fdi.bag.cdr import JointStateLayout
 from youbot_fdi.errors import FdiError
-from youbot_fdi.fdi.samples import CommandSample, JointSample, SampleMapper
+from youbot_fdi.fdi.samples import (CommandBatch, CommandSample, JointBatch, JointSample,
+                                    SampleChunk, SampleMapper)
 
 __all__ = ['CommandSample', 'JointSample', 'RecordingError', 'RecordingReader']
 
@@ -16,6 +22,7 @@ WHEEL_COMMANDS = '/wheel_commands'
 CMD_VEL = '/cmd_vel'
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 NANOSECONDS = 1e9
+CHUNK_MESSAGES = 512  # messages decoded and handed on together by chunks()
 
 
 class RecordingError(FdiError):
@@ -24,6 +31,19 @@ class RecordingError(FdiError):
 
 def _stamp(header):
     return header.stamp.sec + header.stamp.nanosec / NANOSECONDS
+
+
+def _merge(parts, empty):
+    """One batch in recording order from (positions, batch) parts; returns (batch, positions)."""
+    if not parts:
+        return empty, np.empty(0, dtype=int)
+    if len(parts) == 1:
+        return parts[0][1], parts[0][0]
+    positions = np.concatenate([p for p, _ in parts])
+    order = np.argsort(positions, kind='stable')
+    fields = [np.concatenate([getattr(b, f) for _, b in parts])[order]
+              for f in type(empty).__dataclass_fields__]
+    return type(empty)(*fields), positions[order]
 
 
 class RecordingReader:
@@ -94,34 +114,94 @@ class RecordingReader:
         """Bag time of the first message [s]."""
         return self._reader.start_time / NANOSECONDS
 
-    def _sample(self, topic, msg, bag_time):
-        if topic == self.joint_topic:
-            return self.mapper.joint_sample(_stamp(msg.header), msg.name, msg.position,
-                                            msg.velocity, msg.effort)
-        return self.mapper.command_sample(bag_time, msg.name, msg.velocity, msg.effort)
-
     def samples(self):
         """Yield :class:`JointSample` and :class:`CommandSample` in recording order.
 
         A recording that breaks part-way raises :class:`RecordingError` after the samples
         read so far have been yielded.
         """
-        deserialize = self.typestore.deserialize_cdr
+        for chunk in self.chunks():
+            joints, commands = chunk.joints, chunk.commands
+            done = 0
+            for k, before in enumerate(chunk.commands_before):
+                while done < before:
+                    yield commands.sample(done)
+                    done += 1
+                yield joints.sample(k)
+            for k in range(done, len(commands)):
+                yield commands.sample(k)
+
+    def chunks(self, size=CHUNK_MESSAGES, on_progress=None):
+        """Yield :class:`~youbot_fdi.fdi.samples.SampleChunk` s of up to ``size`` messages.
+
+        ``on_progress(messages read, total)`` is called after each chunk. A recording that breaks
+        part-way raises :class:`RecordingError` after the chunks read so far have been yielded.
+        """
+        layouts = {self.joint_topic: None, self.command_topic: None}
+        pending, read, total = [], 0, self.message_count
         try:
             for connection, timestamp, raw in self._reader.messages(connections=self.connections):
-                try:
-                    msg = deserialize(raw, connection.msgtype)
-                except Exception:  # noqa: BLE001 - a corrupt message is skipped, not fatal
-                    self.counters['skipped_no_values'] += 1
-                    continue
-                sample = self._sample(connection.topic, msg, timestamp / NANOSECONDS)
-                if sample is not None:
-                    yield sample
-        except RecordingError:
-            raise
-        except Exception as err:  # noqa: BLE001
+                topic = connection.topic
+                layout = layouts[topic]
+                if layout is None or not layout.matches(raw):
+                    layout = layouts[topic] = JointStateLayout.parse(raw)
+                pending.append((topic == self.joint_topic, layout, raw, timestamp))
+                if len(pending) >= size:
+                    read += len(pending)
+                    yield self._chunk(pending)
+                    pending = []
+                    if on_progress is not None:
+                        on_progress(read, total)
+        except Exception as err:  # noqa: BLE001 - rosbags raises several types for broken bags
+            if pending:
+                yield self._chunk(pending)
             msg = f'{self.path}: recording broken part-way ({type(err).__name__}: {err})'
             raise RecordingError(msg) from err
+        if pending:
+            read += len(pending)
+            yield self._chunk(pending)
+            if on_progress is not None:
+                on_progress(read, total)
+
+    def _decoded(self, entries, layout):
+        """(stamps, names, [position, velocity, effort], bag times) of entries sharing ``layout``;
+        a None layout means one message for rosbags (None if it cannot be decoded)."""
+        bag_times = np.array([e[3] for e in entries], dtype=float) / NANOSECONDS
+        if layout is not None:
+            stamps, arrays = layout.decode([e[2] for e in entries])
+            return stamps, layout.names, arrays, bag_times
+        try:
+            msg = self.typestore.deserialize_cdr(entries[0][2], JOINT_STATE_TYPE)
+        except Exception:  # noqa: BLE001 - a corrupt message is skipped, not fatal
+            self.counters['skipped_no_values'] += 1
+            return None
+        return (np.array([_stamp(msg.header)]), msg.name,
+                [np.asarray(a, dtype=float).reshape(1, -1) for a in (msg.position, msg.velocity, msg.effort)],
+                bag_times)
+
+    def _chunk(self, pending):
+        """Decode and validate a chunk of (is_joint, layout, raw, bag time) entries."""
+        groups = {}
+        for position, entry in enumerate(pending):
+            key = (entry[0], id(entry[1])) if entry[1] is not None else (entry[0], -position)
+            groups.setdefault(key, []).append(position)
+        kept_joints, kept_commands = [], []
+        for (is_joint, _), positions in groups.items():
+            decoded = self._decoded([pending[p] for p in positions], pending[positions[0]][1])
+            if decoded is None:
+                continue
+            stamps, names, (position, velocity, effort), bag_times = decoded
+            if is_joint:
+                found = self.mapper.joint_rows(stamps, names, position, velocity, effort)
+            else:
+                found = self.mapper.command_rows(bag_times, names, velocity, effort)
+            if found is not None:
+                batch, kept = found
+                (kept_joints if is_joint else kept_commands).append((np.asarray(positions)[kept], batch))
+        n = len(self.wheel_names)
+        joints, joint_order = _merge(kept_joints, JointBatch.empty(n))
+        commands, command_order = _merge(kept_commands, CommandBatch.empty(n))
+        return SampleChunk(joints, commands, np.searchsorted(command_order, joint_order))
 
     def decode_only(self):
         """Read and deserialize every message of the topics, doing nothing else (benchmark baseline)."""

@@ -26,6 +26,7 @@ import json
 import numpy as np
 
 from youbot_fdi.faults import FaultKind
+from youbot_fdi.fdi.recursions import run_lengths
 from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
 
@@ -113,20 +114,40 @@ class DecisionMaker:
         return table
 
     # ------------------------------------------------------------------ alarms
-    def _update_alarms(self, frame):
-        values, bounds = frame.flat()
-        z = (np.abs(values) / bounds).reshape(len(FAMILIES), self.n)
-        z[np.isnan(z)] = 0.0  # a residual that cannot be computed (no effort recorded) is silent
-        over = z > 1.0
-        # Only a wheel that moves or carries current can show that it is healthy again: a fault
-        # is not cleared because the wheel stood still.
-        excited = ((np.abs(frame.velocity) > self.settings.stuck_speed)
-                   | (np.abs(frame.torque) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
-        self._above = np.where(over, self._above + 1, 0)
-        self._below = np.where(over, 0, np.where(excited, self._below + 1, self._below))
-        self.alarm = np.where(self._above >= self.settings.persistence, True,
-                              np.where(self._below >= self.settings.release, False, self.alarm))
-        return z
+    def _excited(self, velocity, torque):
+        """Wheels (..., n) that move or carry current: only they can show that they are healthy
+        again (a fault is not cleared because the wheel stood still)."""
+        return ((np.abs(velocity) > self.settings.stuck_speed)
+                | (np.abs(torque) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
+
+    def _alarms(self, over, excited):
+        """Alarm states (N, families, n) after each row of ``over`` (N, families, n) and
+        ``excited`` (N, n), continuing the counters; leaves the state after the last row.
+
+        Sequentially: ``above`` counts consecutive rows over the bound, ``below`` the excited rows
+        since the last one over; an alarm is set at ``above >= persistence``, cleared at
+        ``below >= release`` (never both in one row) and otherwise kept. So the alarm after row k
+        is decided by the latest row that set or cleared it.
+        """
+        rows = len(over)
+        above = run_lengths(over.reshape(rows, -1), self._above.ravel()).reshape(over.shape)
+        counted = np.cumsum(excited[:, None, :] & ~over, axis=0)
+        at_last_over = np.maximum.accumulate(np.where(over, counted, -1), axis=0)
+        below = np.where(at_last_over >= 0, counted - at_last_over, self._below + counted)
+        index = np.arange(rows)[:, None, None]
+        last_set = np.maximum.accumulate(np.where(above >= self.settings.persistence, index, -1), axis=0)
+        last_clear = np.maximum.accumulate(np.where(below >= self.settings.release, index, -1), axis=0)
+        alarm = np.where(last_set > last_clear, True, np.where(last_clear > last_set, False, self.alarm))
+        self._above, self._below, self.alarm = above[-1], below[-1], alarm[-1]
+        return alarm
+
+    def _can_diagnose(self, alarm):
+        """Rows of ``alarm`` (N, families, n) that give a diagnosis when every component is OK:
+        a torque or encoder alarm, or fewer than half the wheels off their command path."""
+        by_family = dict(zip(FAMILIES, np.moveaxis(alarm, 1, 0)))
+        commands = np.count_nonzero(by_family['command'], axis=1)
+        return (by_family['torque'].any(axis=1) | by_family['encoder'].any(axis=1)
+                | ((commands > 0) & (commands * 2 < self.n)))
 
     def _family(self, name):
         return self.alarm[FAMILIES.index(name)]
@@ -227,18 +248,75 @@ class DecisionMaker:
 
     def update(self, frame):
         """Process one residual frame; returns the fault events it causes (usually none)."""
+        values, bounds = frame.flat()
+        z = (np.abs(values) / bounds).reshape(len(FAMILIES), self.n)
+        z[np.isnan(z)] = 0.0  # a residual that cannot be computed (no effort recorded) is silent
+        alarm = self._alarms((z > 1.0)[None], self._excited(frame.velocity, frame.torque)[None])
         self.samples += 1
-        z = self._update_alarms(frame)
-        torque_index = FAMILIES.index('torque')
+        self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
+                       np.array([frame.stamp]))
+        if self._all_ok() and not self._can_diagnose(alarm)[0]:
+            return []
+        return self._step(frame, z)
+
+    def update_batch(self, batch):
+        """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events.
+
+        The same as :meth:`update` frame by frame. The alarms are computed for the whole batch;
+        frames are examined one by one only from a row that can give a diagnosis until every
+        component is OK again.
+        """
+        rows = len(batch)
+        if not rows:
+            return []
+        z = batch.scores()
+        alarm = self._alarms(z > 1.0, self._excited(batch.velocity, batch.torque))
+        capable = np.flatnonzero(self._can_diagnose(alarm))
+        self.samples += rows
+        events, k = [], 0
+        while k < rows:
+            stop = k + 1
+            if self._all_ok():
+                following = capable[np.searchsorted(capable, k):]
+                stop = int(following[0]) if len(following) else rows
+                if stop > k:
+                    self._remember_rows(batch, k, stop)
+                    k = stop
+                    continue
+                stop = k + 1
+            self._remember_rows(batch, k, stop)
+            final = self.alarm
+            self.alarm = alarm[k]  # the diagnosis sees the alarms as they were at this row
+            events += self._step(batch.frame(k), z[k])
+            self.alarm = final
+            k = stop
+        return events
+
+    def _all_ok(self):
+        return all(c.level == OK for c in self.components.values())
+
+    def _remember_rows(self, batch, start, stop):
+        self._remember(batch.values['torque'][start:stop], batch.torque[start:stop],
+                       batch.velocity[start:stop], batch.stamp[start:stop])
+
+    def _remember(self, residual, torque, velocity, stamp):
+        """Keep the last ``classification_window`` of torque residual, torque and speed (N, n) per
+        wheel, for naming the fault type."""
         window = self.settings.classification_window
-        for w, name in enumerate(self.wheel_names):
+        recent = int(np.searchsorted(stamp, stamp[-1] - window))
+        columns = zip(residual[recent:].T.tolist(), torque[recent:].T.tolist(),
+                      velocity[recent:].T.tolist())
+        stamps = stamp[recent:].tolist()
+        for name, (r, t, v) in zip(self.wheel_names, columns):
             history = self.components[name].history
-            history.append((frame.values['torque'][w], frame.torque[w], frame.velocity[w], frame.stamp))
-            while history and frame.stamp - history[0][3] > window:
+            history.extend(zip(r, t, v, stamps))
+            while history and stamps[-1] - history[0][3] > window:
                 history.popleft()
-        if not self.alarm.any() and all(c.level == OK for c in self.components.values()):
-            return []  # nothing latched, nothing to clear: no event is possible (the quiet path)
+
+    def _step(self, frame, z):
+        """Diagnose one frame with its scores ``z`` (families, n) and the alarms in ``self.alarm``."""
         diagnoses = self._diagnose(frame, z)
+        torque_index = FAMILIES.index('torque')
         events = []
         for w, name in enumerate(self.wheel_names):
             component = self.components[name]
@@ -249,7 +327,7 @@ class DecisionMaker:
                     # full (only between the types the window decides), then kept until OK.
                     refinable = (component.fault in REFINABLE and kind.value in REFINABLE
                                  and not component.refined
-                                 and frame.stamp - component.since >= window)
+                                 and frame.stamp - component.since >= self.settings.classification_window)
                     if refinable:
                         component.refined = True
                     else:

@@ -1,4 +1,4 @@
-"""The FDI pipeline: residual generator + decision, fed sample by sample.
+"""The FDI pipeline: residual generator + decision, fed a recording chunk by chunk.
 
 The same object serves the offline replay and the live nodes, so a recording replayed offline
 gives the same decisions as the nodes gave live.
@@ -6,12 +6,14 @@ gives the same decisions as the nodes gave live.
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import DecisionMaker
-from youbot_fdi.fdi.residuals import ResidualGenerator
+from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator
+from youbot_fdi.fdi.samples import CommandBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model, load_profile
 from youbot_fdi.settings import settings_from_mapping
@@ -55,7 +57,11 @@ class ReplayResult:
 
 
 class FdiPipeline:
-    """Residuals and decisions for one base.
+    """Residuals and decisions for one base, fed a recording's chunks
+    (:class:`~youbot_fdi.fdi.samples.SampleChunk`).
+
+    The residual generator and the decision maker are the objects the live nodes run (one sample
+    at a time there, a block at a time here: the same computation).
 
     Parameters
     ----------
@@ -64,7 +70,7 @@ class FdiPipeline:
     residual_data : dict, optional
         Default: the shipped residual set of the youBot model.
     keep_frames : bool
-        Keep every residual frame (for reports); off for live use.
+        Keep every residual frame (for reports, :meth:`residuals`).
     """
 
     def __init__(self, model, settings=FdiSettings(), residual_data=None, keep_frames=False):
@@ -73,54 +79,64 @@ class FdiPipeline:
         residual_data = residual_data or load_residual_data(settings.residual_file or None)
         self.generator = ResidualGenerator(model, settings)
         self.decision = DecisionMaker(model.wheel_names, settings, residual_data)
-        self.frames = [] if keep_frames else None
-        self.last_frame = None
+        self._kept = [] if keep_frames else None
         self._last_stamp = None
 
-    def command(self, sample):
-        """A /wheel_commands sample."""
-        self.generator.command(sample)
+    def residuals(self):
+        """Every residual frame so far as one :class:`~youbot_fdi.fdi.residuals.ResidualBatch`
+        (None unless ``keep_frames``)."""
+        if self._kept is None:
+            return None
+        return ResidualBatch.concatenate(self._kept) if self._kept else None
 
-    def joint_state(self, sample):
-        """A /joint_states sample; returns the fault events it causes."""
-        events = []
-        if self._last_stamp is not None and sample.stamp - self._last_stamp > self.settings.comm_timeout:
-            events += self.decision.data_stalled(self._last_stamp)
-        events += self.decision.data_resumed(sample.stamp)
-        if self._last_stamp is None or sample.stamp > self._last_stamp:
-            self._last_stamp = sample.stamp
-        frame = self.generator.update(sample)
-        if frame is None:
-            return events
-        self.last_frame = frame
-        if self.frames is not None:
-            self.frames.append(frame)
-        return events + self.decision.update(frame)
+    def feed(self, chunk):
+        """A chunk of samples; returns the fault events it causes, in order.
 
-    def feed(self, sample):
-        """Either kind of sample (the reader's stream); returns events."""
-        if hasattr(sample, 'kind'):
-            self.command(sample)
-            return []
-        return self.joint_state(sample)
+        A gap in /joint_states longer than ``comm_timeout`` is the base's comm_loss (raised at the
+        gap, cleared by the sample after it).
+        """
+        joints, commands, before = chunk.joints, chunk.commands, chunk.commands_before
+        rows = len(joints)
+        seen = np.maximum.accumulate(np.concatenate([[-np.inf if self._last_stamp is None
+                                                      else self._last_stamp], joints.stamp]))
+        gaps = np.flatnonzero(np.isfinite(seen[:-1])
+                              & (joints.stamp - seen[:-1] > self.settings.comm_timeout))
+        if rows:
+            self._last_stamp = float(seen[-1])
+        events, applied = [], 0
+        bounds = [0, *gaps.tolist(), rows]
+        for start, stop in zip(bounds[:-1], bounds[1:]):
+            if start in gaps:
+                events += self.decision.data_stalled(float(seen[start]))
+            if start < rows:
+                events += self.decision.data_resumed(float(joints.stamp[start]))
+            last = stop == rows
+            upto = len(commands) if last else int(before[stop - 1])
+            batch = self.generator.update_batch(
+                joints.rows(start, stop),
+                CommandBatch(commands.stamp[applied:upto], commands.velocity_mode[applied:upto],
+                             commands.values[applied:upto]),
+                before[start:stop] - applied)
+            applied = upto
+            if self._kept is not None and len(batch):
+                self._kept.append(batch)
+            events += self.decision.update_batch(batch)
+        return events
 
     def replay(self, path, joint_topic=None, command_topic=None, on_event=None, on_progress=None):
-        """Feed a rosbag2 recording through the pipeline, streaming.
+        """Feed a rosbag2 recording through the pipeline, streaming, a chunk at a time.
 
         ``on_event(event)`` is called as each event is found (so a caller keeps them even when the
         recording breaks part-way and :class:`~youbot_fdi.bag.reader.RecordingError` is raised);
-        ``on_progress(done, total)`` after every message.
+        ``on_progress(messages done, total)`` after every chunk.
         """
         from youbot_fdi.bag.reader import JOINT_STATES, RecordingReader, WHEEL_COMMANDS
         events = []
         with RecordingReader(path, self.model.wheel_names, joint_topic or JOINT_STATES,
                              command_topic or WHEEL_COMMANDS) as reader:
-            total = reader.message_count
-            for done, sample in enumerate(reader.samples(), 1):
-                for event in self.feed(sample):
+            for chunk in reader.chunks(on_progress=on_progress):
+                for event in self.feed(chunk):
                     events.append(event)
                     if on_event is not None:
                         on_event(event)
-                if on_progress is not None:
-                    on_progress(done, total)
             return ReplayResult(events, dict(reader.counters), reader.has_commands)

@@ -38,14 +38,16 @@ def plot_friction_sweep(sweep, path):
     return path
 
 
-def _series(frames, model):
-    time = np.array([f.stamp for f in frames])
-    data = {'time': time - time[0] if len(time) else time, 't0': time[0] if len(time) else 0.0,
-            'velocity': np.array([f.velocity for f in frames]),
-            'torque': np.array([f.torque for f in frames])}
+def _series(residuals):
+    """Plot data from a :class:`~youbot_fdi.fdi.residuals.ResidualBatch` (or None)."""
+    if residuals is None:
+        return {'time': np.empty(0), 't0': 0.0}
+    time = residuals.stamp
+    data = {'time': time - time[0], 't0': time[0], 'velocity': residuals.velocity,
+            'torque': residuals.torque}
     for family in FAMILIES:
-        data[family] = np.array([f.values[family] for f in frames])
-        data[family + '_bound'] = np.array([f.bounds[family] for f in frames])
+        data[family] = residuals.values[family]
+        data[family + '_bound'] = residuals.bounds[family]
     return data
 
 
@@ -109,8 +111,7 @@ def _figures(directory, model, data, events):
 def write_report(directory, model, pipeline, events, source):
     """Write figures and ``index.html`` for a replay; returns the index path."""
     directory.mkdir(parents=True, exist_ok=True)
-    frames = pipeline.frames or []
-    data = _series(frames, model)
+    data = _series(pipeline.residuals())
     figures = _figures(directory, model, data, events)
     rows = ''.join(f'<tr><td>{e.stamp:.3f}</td><td>{e.level}</td><td>{html.escape(str(e.wheel))}'
                    f'</td><td>{e.fault}</td><td>{html.escape(", ".join(e.residuals))}</td>'
@@ -120,7 +121,7 @@ def write_report(directory, model, pipeline, events, source):
             f'<style>body{{font-family:sans-serif;margin:2em}}td,th{{padding:2px 8px;'
             f'border-bottom:1px solid #ddd}}</style></head><body>'
             f'<h1>youbot-fdi replay of {html.escape(str(source))}</h1>'
-            f'<p>profile {html.escape(model.profile.name)}, {len(frames)} samples, '
+            f'<p>profile {html.escape(model.profile.name)}, {len(data["time"])} samples, '
             f'{len(events)} events.</p><table><tr><th>stamp [s]</th><th>level</th><th>wheel</th>'
             f'<th>fault</th><th>residuals</th><th>detail</th></tr>{rows}</table>{images}'
             f'{"" if figures else "<p>(figures need matplotlib)</p>"}</body></html>')

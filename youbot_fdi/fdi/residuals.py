@@ -12,20 +12,29 @@ is in the kinematic convention. Residual families, per wheel ``<w>``:
 ``observer_<w>``
     Measured speed minus the speed predicted from the measured currents alone by the dynamic model
     (the observer), with a slow correction (``observer_time_constant``). Sensitive to every actuator
-    and friction fault and to wheel w's sensor only.
+    and friction fault and to wheel w's sensor. The Coulomb friction is taken at the measured speed
+    (output injection): the observer error then follows linear dynamics, and a recording is
+    processed in blocks by a prefix scan instead of sample by sample.
 ``command_<w>``
     The command path. Velocity mode: measured speed minus the speed the firmware's PI loop would
     reach from the commands (firmware emulation at its own period, with current limit). Current mode:
     measured minus commanded effort. Sensitive to a wheel that does not do what it is told (runaway).
+    Coulomb friction at the measured speed, as for the observer; where the loop saturates (current
+    or integral limit) it is stepped period by period.
 ``encoder_<w>``
     Position increment minus speed times the interval: a reading that freezes while the wheel moves.
 
 Each residual comes with its bound u (see :mod:`youbot_fdi.fdi.settings`).
+
+:meth:`ResidualGenerator.update_batch` computes a block of samples at once (the replay);
+:meth:`ResidualGenerator.update` is the same computation for one sample (the live node).
 """
 from dataclasses import dataclass
 
 import numpy as np
 
+from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, run_lengths
+from youbot_fdi.fdi.samples import CommandBatch, JointBatch, VELOCITY
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.structure.generate import wheel_suffix
 
@@ -105,6 +114,60 @@ class ResidualFrame:
                    frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int))
 
 
+
+@dataclass(frozen=True)
+class ResidualBatch:
+    """The residual frames of a block of samples: ``stamp`` (N,), ``velocity_mode`` (N,) bool,
+    everything else (N, n) as in :class:`ResidualFrame` (``values``/``bounds`` per family)."""
+
+    stamp: np.ndarray
+    values: dict
+    bounds: dict
+    velocity: np.ndarray
+    torque: np.ndarray
+    velocity_mode: np.ndarray
+    command: np.ndarray
+    frozen: np.ndarray
+    effort_frozen: np.ndarray
+
+    def __len__(self):
+        return len(self.stamp)
+
+    def frame(self, k):
+        """Row ``k`` as a :class:`ResidualFrame`."""
+        return ResidualFrame(
+            stamp=float(self.stamp[k]), values={f: v[k] for f, v in self.values.items()},
+            bounds={f: b[k] for f, b in self.bounds.items()}, velocity=self.velocity[k],
+            torque=self.torque[k], command_mode=VELOCITY if self.velocity_mode[k] else 'effort',
+            command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k])
+
+    def select(self, rows):
+        """The rows ``rows`` (index array, mask or slice) as a batch."""
+        pick = {f: getattr(self, f)[rows] for f in ('stamp', 'velocity', 'torque', 'velocity_mode',
+                                                   'command', 'frozen', 'effort_frozen')}
+        return ResidualBatch(values={f: v[rows] for f, v in self.values.items()},
+                             bounds={f: b[rows] for f, b in self.bounds.items()}, **pick)
+
+    def scores(self):
+        """|r| / u, shape (N, families, n); 0 where a residual cannot be computed (NaN)."""
+        values = np.stack([self.values[f] for f in FAMILIES], axis=1)
+        bounds = np.stack([self.bounds[f] for f in FAMILIES], axis=1)
+        z = np.abs(values) / bounds
+        z[np.isnan(z)] = 0.0
+        return z
+
+    @classmethod
+    def concatenate(cls, batches):
+        """One batch of several, in order."""
+        batches = list(batches)
+        join = {f: np.concatenate([getattr(b, f) for b in batches])
+                for f in ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen',
+                          'effort_frozen')}
+        return cls(values={f: np.concatenate([b.values[f] for b in batches]) for f in FAMILIES},
+                   bounds={f: np.concatenate([b.bounds[f] for b in batches]) for f in FAMILIES},
+                   **join)
+
+
 class ResidualGenerator:
     """Stateful residual generator for one base.
 
@@ -134,8 +197,7 @@ class ResidualGenerator:
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
-        self._no_torque = np.zeros(self.n)
-        self.command_mode = 'velocity'
+        self.command_mode = VELOCITY
         self.command_values = np.zeros(self.n)
         self.command_stamp = -np.inf
         self._last = None
@@ -143,22 +205,33 @@ class ResidualGenerator:
 
     # ------------------------------------------------------------------ helpers
     def _discrete(self, dt):
-        key = round(dt, DT_KEY_DECIMALS)
+        """(Phi, Gamma, Gamma^-1) over ``dt`` [s], cached per 0.1 ms."""
+        key = max(round(float(dt), DT_KEY_DECIMALS), 10.0 ** -DT_KEY_DECIMALS)
         if key not in self._cache:
             phi, gamma = zoh_discretize(self._a_v, self._b_v, key)
             self._cache[key] = (phi, gamma, np.linalg.inv(gamma))
         return self._cache[key]
 
+    def _discrete_rows(self, dt):
+        """(Phi, Gamma, Gamma^-1) per row of ``dt`` (N,): three (N, n, n) arrays."""
+        if len(dt) == 1:
+            return tuple(m[None] for m in self._discrete(dt[0]))
+        if np.all(dt == dt[0]):
+            return tuple(np.broadcast_to(m, (len(dt),) + m.shape) for m in self._discrete(dt[0]))
+        keys, inverse = np.unique(np.round(dt, DT_KEY_DECIMALS), return_inverse=True)
+        stacked = [np.stack(m) for m in zip(*(self._discrete(key) for key in keys))]
+        return tuple(m[inverse] for m in stacked)
+
     def _coulomb(self, velocity):
         if not self._has_coulomb:
-            return self._no_torque
+            return np.zeros_like(velocity)
         return self.model.dynamics.coulomb_torque(velocity)
 
     def _loop_step(self, steps):
         """Exact unsaturated map of ``steps`` firmware periods of the PI loop.
 
         State ``x = [speed; integral]``, ``x' = A x + B r + C c`` with r the speed target and c the
-        friction torque held over the interval (Coulomb, evaluated at its start).
+        friction torque held over the interval.
         """
         if steps not in self._loop_cache:
             n, period, g = self.n, self.period, self.torque_per_amp
@@ -174,147 +247,246 @@ class ResidualGenerator:
             self._loop_cache[steps] = (a, b, c)
         return self._loop_cache[steps]
 
+    def _start_integral(self, torque, velocity, velocity_mode, target):
+        """The PI integral that explains the measured current at a (re)start, shape (..., n)."""
+        if self.ki <= 0:
+            return np.zeros_like(velocity)
+        current = np.where(np.isnan(torque), 0.0, torque) / self.torque_per_amp
+        error = np.where(np.asarray(velocity_mode)[..., None], target - velocity, 0.0)
+        return np.clip((current - self.kp * error) / self.ki, -self._integral_limit, self._integral_limit)
+
+    # ------------------------------------------------------------------ commands
     def command(self, sample):
-        """Take a /wheel_commands sample (:class:`~youbot_fdi.bag.reader.CommandSample`)."""
+        """Take a /wheel_commands sample (:class:`~youbot_fdi.fdi.samples.CommandSample`)."""
         self.command_mode = sample.kind
         self.command_values = self.signs * np.asarray(sample.values, dtype=float)
         self.command_stamp = sample.stamp
 
-    def _command_in_force(self, stamp):
-        if stamp - self.command_stamp > self.settings.command_timeout:
-            return 'velocity', np.zeros(self.n)  # the shim's watchdog: zero speed
-        return self.command_mode, self.command_values
+    def _commands_in_force(self, stamp, commands=None, commands_before=None):
+        """(velocity mode (N,) bool, target (N, n) kinematic) at each stamp: the latest command,
+        or zero speed once it is older than the shim's watchdog (``command_timeout``)."""
+        rows = len(stamp)
+        velocity_mode = np.full(rows, self.command_mode == VELOCITY)
+        values = self.command_values
+        command_stamp = np.full(rows, self.command_stamp)
+        if commands is not None and len(commands):
+            pick = np.asarray(commands_before) - 1
+            taken, pick = pick >= 0, np.maximum(pick, 0)
+            velocity_mode = np.where(taken, commands.velocity_mode[pick], velocity_mode)
+            values = np.where(taken[:, None], self.signs * commands.values[pick], values)
+            command_stamp = np.where(taken, commands.stamp[pick], command_stamp)
+            self.command(commands.sample(len(commands) - 1))
+        expired = stamp - command_stamp > self.settings.command_timeout
+        return velocity_mode | expired, np.where(expired[:, None], 0.0, values)
 
+    # ------------------------------------------------------------------ state
     def reset(self):
         """Forget the state (after a gap in the data)."""
         self._last = None
-
-    def predict_command_path(self, stamp, dt, velocity):
-        """Advance only the command-path prediction by ``dt`` [s] to ``stamp``; returns the
-        predicted wheel speeds [rad/s] (kinematic convention). ``velocity`` is the measured speed
-        (kinematic), used in current mode where the path follows the measurement."""
-        mode, target = self._command_in_force(stamp)
-        self._predict_command_path(dt, mode, target, velocity)
-        return self._cmd_speed
 
     def predictions(self):
         """(from currents, from commands): the observer's predicted wheel speeds [rad/s], driver
         convention, or None before the first sample."""
         if self._last is None:
             return None
-        return self.signs * self._observer, self.signs * self._cmd_speed
+        return self.signs * self._observer, self.signs * self._command_state[:self.n]
 
     def start(self, stamp, position, velocity, torque):
         """(Re)start from one sample: kinematic convention, [s], [rad], [rad/s], [N·m]."""
-        mode, target = self._command_in_force(stamp)
+        velocity_mode, target = self._commands_in_force(np.array([stamp]))
+        integral = self._start_integral(torque, velocity, velocity_mode[0], target[0])
         self._observer = velocity.copy()
-        self._cmd_speed = velocity.copy()
-        current = np.where(np.isnan(torque), 0.0, torque) / self.torque_per_amp
-        error = target - velocity if mode == 'velocity' else np.zeros(self.n)
-        self._cmd_integral = np.clip((current - self.kp * error) / self.ki if self.ki > 0 else 0.0,
-                                     -self._integral_limit, self._integral_limit)
+        self._command_state = np.concatenate([velocity, integral])
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._last = (stamp, position, velocity, torque)
         self._started = stamp
 
-    def _predict_command_path(self, dt, mode, target, velocity):
-        """Advance the firmware-loop prediction over ``dt`` (velocity mode), at the firmware period.
+    # ------------------------------------------------------------------ the command path
+    def _saturated(self, before, after, target):
+        """Rows (M,) where the PI loop leaves its linear range between states ``before`` and
+        ``after`` (M, 2n) under ``target`` (M, n)."""
+        n = self.n
+        error0 = target - before[:, :n]
+        start_current = self.kp * error0 + self.ki * (before[:, n:] + error0 * self.period)
+        end_current = self.kp * (target - after[:, :n]) + self.ki * after[:, n:]
+        return ((np.abs(start_current).max(axis=1) >= self.max_current)
+                | (np.abs(end_current).max(axis=1) >= self.max_current)
+                | (np.abs(after[:, n:]).max(axis=1) >= self._integral_limit))
 
-        The loop is linear while neither the current nor the integral is at its limit: then one
-        exact step covers the interval; otherwise it is stepped period by period.
-        """
-        if mode != 'velocity':
-            self._cmd_speed = velocity.copy()
-            self._cmd_integral = np.zeros(self.n)
-            return
-        steps = max(1, int(round(dt / self.period)))
-        speed, integral = self._cmd_speed, self._cmd_integral
+    def _stepped(self, state, steps, target, friction):
+        """``steps`` firmware periods of the saturating PI loop from ``state`` (2n,)."""
+        n, period = self.n, self.period
         limit, max_current = self._integral_limit, self.max_current
-        a, b, c = self._loop_step(steps)
-        state = a @ np.concatenate([speed, integral]) + b @ target + c @ self._coulomb(speed)
-        new_speed, new_integral = state[:self.n], state[self.n:]
-        start_current = self.kp * (target - speed) + self.ki * (integral + (target - speed) * self.period)
-        end_current = self.kp * (target - new_speed) + self.ki * new_integral
-        if (np.abs(start_current).max() < max_current and np.abs(end_current).max() < max_current
-                and np.abs(new_integral).max() < limit):
-            self._cmd_speed, self._cmd_integral = new_speed, new_integral
-            return
-        period = self.period
+        speed, integral = state[:n], state[n:]
         for _ in range(steps):
             error = target - speed
             integral = np.minimum(np.maximum(integral + error * period, -limit), limit)
             current = np.minimum(np.maximum(self.kp * error + self.ki * integral, -max_current),
                                  max_current)
-            speed = self._phi1 @ speed + self._gamma1 @ (current * self.torque_per_amp
-                                                        - self._coulomb(speed))
-        self._cmd_speed, self._cmd_integral = speed, integral
+            speed = self._phi1 @ speed + self._gamma1 @ (current * self.torque_per_amp - friction)
+        return np.concatenate([speed, integral])
+
+    def _command_path(self, dt, hold, held, velocity_mode, target, friction):
+        """Command-path states (N, 2n) = [predicted speed, PI integral] after each row.
+
+        Velocity-mode rows advance the firmware loop over ``dt`` (N,) at its own period: exactly
+        (a prefix scan) while it is linear, period by period where it saturates. ``hold`` rows
+        (N,) bool take the state ``held`` (N, 2n) instead (a restart, current mode).
+        """
+        rows, n = len(dt), self.n
+        steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
+        a = np.zeros((rows, 2 * n, 2 * n))
+        b = np.array(held, dtype=float)
+        advancing = ~hold
+        for count in (steps[advancing] if rows == 1 else np.unique(steps[advancing])):
+            pick = advancing & (steps == count)
+            loop_a, loop_b, loop_c = self._loop_step(int(count))
+            a[pick] = loop_a
+            b[pick] = target[pick] @ loop_b.T + friction[pick] @ loop_c.T
+        saturable = advancing & velocity_mode
+        states = np.empty((rows, 2 * n))
+        state, k = self._command_state, 0
+        while k < rows:
+            scanned = affine_recursion(a[k:], b[k:], state)
+            before = np.concatenate([state[None], scanned[:-1]])
+            bad = saturable[k:] & self._saturated(before, scanned, target[k:])
+            good = int(np.argmax(bad)) if bad.any() else len(bad)
+            states[k:k + good] = scanned[:good]
+            k += good
+            if k == rows:
+                break
+            state = before[good]
+            while True:  # step the saturated rows one by one until the loop is linear again
+                state = states[k] = self._stepped(state, steps[k], target[k], friction[k])
+                k += 1
+                if k == rows or not saturable[k]:
+                    break
+                linear = a[k] @ state + b[k]
+                if not self._saturated(state[None], linear[None], target[k:k + 1])[0]:
+                    break
+        return states
+
+    def predict_command_path(self, stamp, dt, velocity):
+        """Advance only the command-path prediction by ``dt`` [s] to ``stamp``; returns the
+        predicted wheel speeds [rad/s] (kinematic convention). ``velocity`` is the measured speed
+        (kinematic): the Coulomb friction is taken there, and current mode follows it."""
+        velocity_mode, target = self._commands_in_force(np.array([stamp]))
+        held = np.concatenate([velocity, np.zeros(self.n)])[None]
+        states = self._command_path(np.array([dt]), ~velocity_mode, held, velocity_mode, target,
+                                    self._coulomb(velocity)[None])
+        self._command_state = states[-1]
+        return self._command_state[:self.n]
 
     # ------------------------------------------------------------------ the update
     def update(self, sample):
-        """Residuals for one /joint_states sample, or None (first sample, or after a gap/reorder)."""
-        stamp = sample.stamp
-        position = self.signs * sample.position
-        velocity = self.signs * sample.velocity
-        torque = self.signs * sample.effort
-        self._torque_known = not np.isnan(torque).any()
-        if self._last is None:
-            self.start(stamp, position, velocity, torque)
-            return None
-        last_stamp, last_position, last_velocity, last_torque = self._last
-        dt = stamp - last_stamp
-        if dt <= 0.0 or dt > self.settings.comm_timeout:
-            self.skipped += 1
-            self.start(stamp, position, velocity, torque)
-            return None
-        s = self.settings
-        phi, gamma, gamma_inv = self._discrete(dt)
-        mean_torque = 0.5 * (torque + last_torque)
-        mean_speed = 0.5 * (velocity + last_velocity)
-        coulomb = self._coulomb(mean_speed)
+        """Residuals for one /joint_states sample (:class:`~youbot_fdi.fdi.samples.JointSample`):
+        a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder)."""
+        batch = self.update_batch(JointBatch(np.array([sample.stamp], dtype=float),
+                                             sample.position[None], sample.velocity[None],
+                                             sample.effort[None]))
+        return batch.frame(0) if len(batch) else None
 
-        explained = gamma_inv @ (velocity - phi @ last_velocity) + coulomb
-        inertial = self.mass_matrix @ (velocity - last_velocity) / dt
+    def update_batch(self, joints, commands=None, commands_before=None):
+        """Residuals of a block of /joint_states samples (:class:`~youbot_fdi.fdi.samples.JointBatch`),
+        with the commands that arrived among them (``commands_before[k]`` of ``commands`` came
+        before sample k; see :class:`~youbot_fdi.fdi.samples.SampleChunk`).
+
+        Returns a :class:`ResidualBatch` of every sample but those that (re)start the generator:
+        the first, and any after a gap longer than ``comm_timeout`` or a stamp going backwards.
+        """
+        s, n, rows = self.settings, self.n, len(joints)
+        stamp = joints.stamp
+        position, velocity, torque = (self.signs * a for a in
+                                      (joints.position, joints.velocity, joints.effort))
+        velocity_mode, target = self._commands_in_force(stamp, commands, commands_before)
+        if rows == 0:
+            empty = np.empty((0, n))
+            return self._batch(stamp, *(empty,) * 10, velocity_mode, target, empty.astype(int),
+                               empty.astype(int))
+        first = self._last is None
+        if first:
+            self.start(stamp[0], position[0], velocity[0], torque[0])
+        last_stamp, last_position, last_velocity, last_torque = self._last
+        prev_stamp = np.concatenate([[last_stamp], stamp[:-1]])
+        prev_position, prev_velocity, prev_torque = (
+            np.concatenate([last[None], now[:-1]]) for last, now in
+            ((last_position, position), (last_velocity, velocity), (last_torque, torque)))
+        dt = stamp - prev_stamp
+        restart = ~((dt > 0.0) & (dt <= s.comm_timeout))
+        if first:
+            restart[0] = True
+        self.skipped += int(np.count_nonzero(restart)) - int(first)
+        dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
+        phi, gamma, gamma_inv = self._discrete_rows(dt)
+        step = dt[:, None]
+
+        mean_torque = 0.5 * (torque + prev_torque)
+        mean_speed = 0.5 * (velocity + prev_velocity)
+        change = velocity - prev_velocity
+        coulomb = self._coulomb(mean_speed)
+        explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
+        inertial = change @ self.mass_matrix.T / step
         torque_r = mean_torque - explained
         torque_u = (s.torque_sigma + s.torque_inertia_fraction * np.abs(inertial)
-                    + s.torque_current_change_fraction * np.abs(torque - last_torque)
+                    + s.torque_current_change_fraction * np.abs(torque - prev_torque)
                     + s.torque_friction_fraction * (np.abs(self.friction * mean_speed) + np.abs(coulomb)))
 
-        applied = mean_torque if self._torque_known else self._no_torque
-        self._observer = phi @ self._observer + gamma @ (applied - self._coulomb(self._observer))
-        observer_r = velocity - self._observer
-        observer_u = s.observer_sigma + s.observer_speed_fraction * np.abs(self._observer)
-        self._observer += (dt / s.observer_time_constant) * observer_r
+        # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
+        known = np.isfinite(mean_torque).all(axis=1, keepdims=True)
+        forced = matvec(gamma, np.where(known, mean_torque, 0.0) - coulomb)
+        correction = step / s.observer_time_constant
+        a = (1.0 - correction)[:, :, None] * phi
+        b = (1.0 - correction) * forced + correction * velocity
+        a[restart], b[restart] = 0.0, velocity[restart]
+        observer_before = self._observer
+        observer = affine_recursion(a, b, observer_before)
+        predicted = matvec(phi, np.concatenate([observer_before[None], observer[:-1]])) + forced
+        observer_r = velocity - predicted
+        observer_u = s.observer_sigma + s.observer_speed_fraction * np.abs(predicted)
 
-        mode, target = self._command_in_force(stamp)
-        before = self._cmd_speed.copy()
-        self._predict_command_path(dt, mode, target, velocity)
-        if stamp - self._started < s.startup_time:
-            command_r, command_u = np.zeros(self.n), np.ones(self.n)  # the prediction settles
-        elif mode == 'velocity':
-            command_r = velocity - self._cmd_speed
-            command_u = (s.command_sigma + s.command_speed_fraction * np.abs(self._cmd_speed)
-                         + s.command_transient_fraction * np.maximum(np.abs(target - self._cmd_speed),
-                                                                     np.abs(target - before))
-                         + s.command_delay * np.abs(self._cmd_speed - before) / dt)
-        else:
-            command_r = torque - target
-            command_u = s.effort_sigma + s.effort_fraction * np.abs(target)
+        hold = restart | ~velocity_mode
+        integral = np.zeros_like(velocity)
+        if restart.any():
+            integral[restart] = self._start_integral(torque[restart], velocity[restart],
+                                                     velocity_mode[restart], target[restart])
+        held = np.concatenate([velocity, integral], axis=1)
+        command_before = self._command_state
+        path = self._command_path(dt, hold, held, velocity_mode, target, coulomb)
+        speed = path[:, :n]
+        before = np.concatenate([command_before[None, :n], speed[:-1]])
+        started = last_true_value(restart, stamp, self._started)
+        settling = (stamp - started < s.startup_time)[:, None]
+        in_velocity = velocity_mode[:, None]
+        command_r = np.where(settling, 0.0, np.where(in_velocity, velocity - speed, torque - target))
+        velocity_u = (s.command_sigma + s.command_speed_fraction * np.abs(speed)
+                      + s.command_transient_fraction * np.maximum(np.abs(target - speed),
+                                                                  np.abs(target - before))
+                      + s.command_delay * np.abs(speed - before) / step)
+        effort_u = s.effort_sigma + s.effort_fraction * np.abs(target)
+        command_u = np.where(settling, 1.0, np.where(in_velocity, velocity_u, effort_u))
 
-        encoder_r = (position - last_position) - mean_speed * dt
+        encoder_r = (position - prev_position) - mean_speed * step
         encoder_u = (s.encoder_sigma + (s.encoder_speed_fraction * np.abs(mean_speed)
-                                        + s.encoder_change_fraction * np.abs(velocity - last_velocity)) * dt
+                                        + s.encoder_change_fraction * np.abs(change)) * step
                      + s.timing_jitter * np.abs(mean_speed))
 
-        unchanged = (position == last_position) & (velocity == last_velocity)
-        self._frozen = np.where(unchanged, self._frozen + 1, 0)
-        self._effort_frozen = np.where(unchanged & (torque == last_torque), self._effort_frozen + 1, 0)
-        self._last = (stamp, position, velocity, torque)
-        return ResidualFrame(
-            stamp=stamp,
-            values={'torque': torque_r, 'observer': observer_r, 'command': command_r,
-                    'encoder': encoder_r},
-            bounds={'torque': torque_u, 'observer': observer_u, 'command': command_u,
-                    'encoder': encoder_u},
-            velocity=velocity, torque=torque, command_mode=mode, command=target,
-            frozen=self._frozen.copy(), effort_frozen=self._effort_frozen.copy())
+        unchanged = (position == prev_position) & (velocity == prev_velocity)
+        frozen = run_lengths(unchanged, self._frozen, restart)
+        effort_frozen = run_lengths(unchanged & (torque == prev_torque), self._effort_frozen, restart)
+
+        self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
+        self._observer, self._command_state = observer[-1], path[-1]
+        self._frozen, self._effort_frozen, self._started = frozen[-1], effort_frozen[-1], started[-1]
+        batch = self._batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u,
+                            encoder_r, encoder_u, velocity, torque, velocity_mode, target, frozen,
+                            effort_frozen)
+        return batch.select(~restart) if restart.any() else batch
+
+    @staticmethod
+    def _batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u, encoder_r,
+               encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen):
+        values = dict(zip(FAMILIES, (torque_r, observer_r, command_r, encoder_r)))
+        bounds = dict(zip(FAMILIES, (torque_u, observer_u, command_u, encoder_u)))
+        return ResidualBatch(stamp, values, bounds, velocity, torque, velocity_mode, target, frozen,
+                             effort_frozen)

@@ -1,7 +1,9 @@
 """Wheel samples from JointState-shaped data (a recording's or a topic's), matched by joint name.
 
 One implementation for the bag reader and the nodes: bad messages (NaN, short arrays, missing
-wheels) are skipped and counted, never fatal.
+wheels) are skipped and counted, never fatal. Messages are validated in blocks that share their
+joint names and array lengths (a recording's chunk, or one live message), so the replay handles a
+chunk of messages in a few numpy operations.
 """
 from dataclasses import dataclass
 import math
@@ -28,12 +30,99 @@ class CommandSample:
     values: np.ndarray
 
 
+VELOCITY, EFFORT = 'velocity', 'effort'
+
+
+@dataclass(frozen=True)
+class JointBatch:
+    """Consecutive /joint_states samples: ``stamp`` (N,) [s]; the rest (N, n), as in JointSample."""
+
+    stamp: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+
+    def __len__(self):
+        return len(self.stamp)
+
+    def sample(self, k):
+        """Row ``k`` as a :class:`JointSample`."""
+        return JointSample(float(self.stamp[k]), self.position[k], self.velocity[k], self.effort[k])
+
+    def rows(self, start, stop):
+        """Rows ``start:stop`` as a batch (views)."""
+        return JointBatch(self.stamp[start:stop], self.position[start:stop],
+                          self.velocity[start:stop], self.effort[start:stop])
+
+    @classmethod
+    def empty(cls, n):
+        """No samples of ``n`` wheels."""
+        return cls(np.empty(0), *(np.empty((0, n)) for _ in range(3)))
+
+    @classmethod
+    def from_samples(cls, samples):
+        """Stack :class:`JointSample` s."""
+        return cls(np.array([s.stamp for s in samples], dtype=float),
+                   *(np.array([getattr(s, f) for s in samples], dtype=float).reshape(len(samples), -1)
+                     for f in ('position', 'velocity', 'effort')))
+
+
+@dataclass(frozen=True)
+class CommandBatch:
+    """Consecutive /wheel_commands: ``stamp`` (M,) [s], ``velocity_mode`` (M,) bool (else effort),
+    ``values`` (M, n) in driver convention ([rad/s] or [N·m])."""
+
+    stamp: np.ndarray
+    velocity_mode: np.ndarray
+    values: np.ndarray
+
+    def __len__(self):
+        return len(self.stamp)
+
+    def sample(self, k):
+        """Row ``k`` as a :class:`CommandSample`."""
+        return CommandSample(float(self.stamp[k]), VELOCITY if self.velocity_mode[k] else EFFORT,
+                             self.values[k])
+
+    @classmethod
+    def empty(cls, n):
+        """No commands for ``n`` wheels."""
+        return cls(np.empty(0), np.empty(0, dtype=bool), np.empty((0, n)))
+
+    @classmethod
+    def from_samples(cls, samples):
+        """Stack :class:`CommandSample` s."""
+        return cls(np.array([s.stamp for s in samples], dtype=float),
+                   np.array([s.kind == VELOCITY for s in samples], dtype=bool),
+                   np.array([s.values for s in samples], dtype=float).reshape(len(samples), -1))
+
+
+@dataclass(frozen=True)
+class SampleChunk:
+    """A stretch of a recording: its joint samples, its commands, and their interleaving:
+    ``commands_before[k]`` commands of this chunk arrived before joint sample ``k``."""
+
+    joints: JointBatch
+    commands: CommandBatch
+    commands_before: np.ndarray  # (N,) int
+
+
 COUNTERS = ('joint_states', 'wheel_commands', 'skipped_nan', 'skipped_short',
             'skipped_missing_joint', 'skipped_no_values')
 
 
+def as_rows(array, rows):
+    """A message field (one message's sequence, or a block's (rows, m) array) as (rows, m) floats."""
+    return np.asarray(array, dtype=float).reshape(rows, -1)
+
+
 class SampleMapper:
-    """Maps JointState fields to the model's wheel order and validates them."""
+    """Maps JointState fields to the model's wheel order and validates them.
+
+    The ``*_rows`` methods take a block of messages that share ``names`` and array lengths: a stamp
+    array (N,) and fields of shape (N, m) (m = 0: the field is absent). They return the usable rows
+    as a batch and their indices into the block, and count the rest.
+    """
 
     def __init__(self, wheel_names):
         self.wheel_names = tuple(wheel_names)
@@ -49,52 +138,75 @@ class SampleMapper:
                                       np.array([position[n] for n in self.wheel_names]))
         return self._index_cache[key]
 
-    def _pick(self, array, index, n_names):
-        if len(array) == 0:
-            return None
-        if len(array) < n_names:
-            self.counters['skipped_short'] += 1
-            return False
-        return np.asarray(array, dtype=float)[index]
-
-    def joint_sample(self, stamp, names, position, velocity, effort):
-        """A :class:`JointSample`, or None (counted) for a message that cannot be used."""
+    def _usable(self, names, fields, rows):
+        """The wheel index of ``names`` and the fields picked in wheel order (None: absent), or
+        None when the whole block is unusable (counted)."""
         index = self._indices(names)
         if index is None:
-            self.counters['skipped_missing_joint'] += 1
+            self.counters['skipped_missing_joint'] += rows
             return None
-        n = len(names)
-        position, velocity, effort = (self._pick(a, index, n) for a in (position, velocity, effort))
-        if position is False or velocity is False or effort is False:
+        picked = []
+        for field in fields:
+            if field.shape[1] == 0:
+                picked.append(None)
+            elif field.shape[1] < len(names):
+                self.counters['skipped_short'] += rows
+                return None
+            else:
+                picked.append(field[:, index])
+        return picked
+
+    def _keep_finite(self, arrays, rows):
+        finite = np.ones(rows, dtype=bool)
+        for array in arrays:
+            finite &= np.isfinite(array).all(axis=1)
+        self.counters['skipped_nan'] += int(rows - np.count_nonzero(finite))
+        return np.flatnonzero(finite)
+
+    def joint_rows(self, stamp, names, position, velocity, effort):
+        """(JointBatch, kept row indices) of a block, or None when no row is usable."""
+        rows = len(stamp)
+        picked = self._usable(names, [as_rows(a, rows) for a in (position, velocity, effort)], rows)
+        if picked is None:
             return None
+        position, velocity, effort = picked
         if position is None or velocity is None:
-            self.counters['skipped_no_values'] += 1
+            self.counters['skipped_no_values'] += rows
             return None
         if effort is None:
-            effort = np.full(len(self.wheel_names), math.nan)
-        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(velocity))):
-            self.counters['skipped_nan'] += 1
+            effort = np.full(position.shape, math.nan)
+        kept = self._keep_finite((position, velocity), rows)
+        if not len(kept):
             return None
-        self.counters['joint_states'] += 1
-        return JointSample(stamp, position, velocity, effort)
+        self.counters['joint_states'] += len(kept)
+        if len(kept) < rows:
+            stamp, position, velocity, effort = (a[kept] for a in (stamp, position, velocity, effort))
+        return JointBatch(np.asarray(stamp, dtype=float), position, velocity, effort), kept
 
-    def command_sample(self, stamp, names, velocity, effort):
-        """A :class:`CommandSample` (velocity preferred), or None (counted)."""
-        index = self._indices(names)
-        if index is None:
-            self.counters['skipped_missing_joint'] += 1
+    def command_rows(self, stamp, names, velocity, effort):
+        """(CommandBatch, kept row indices) of a block (velocity preferred), or None."""
+        rows = len(stamp)
+        picked = self._usable(names, [as_rows(a, rows) for a in (velocity, effort)], rows)
+        if picked is None:
             return None
-        n = len(names)
-        for kind, array in (('velocity', velocity), ('effort', effort)):
-            values = self._pick(array, index, n)
-            if values is False:
-                return None
+        for velocity_mode, values in zip((True, False), picked):
             if values is None:
                 continue
-            if not np.all(np.isfinite(values)):
-                self.counters['skipped_nan'] += 1
+            kept = self._keep_finite((values,), rows)
+            if not len(kept):
                 return None
-            self.counters['wheel_commands'] += 1
-            return CommandSample(stamp, kind, values)
-        self.counters['skipped_no_values'] += 1
+            self.counters['wheel_commands'] += len(kept)
+            return (CommandBatch(np.asarray(stamp, dtype=float)[kept], np.full(len(kept), velocity_mode),
+                                 values[kept]), kept)
+        self.counters['skipped_no_values'] += rows
         return None
+
+    def joint_sample(self, stamp, names, position, velocity, effort):
+        """A :class:`JointSample` of one message, or None (counted) when it cannot be used."""
+        found = self.joint_rows(np.array([stamp], dtype=float), names, position, velocity, effort)
+        return None if found is None else found[0].sample(0)
+
+    def command_sample(self, stamp, names, velocity, effort):
+        """A :class:`CommandSample` of one message (velocity preferred), or None (counted)."""
+        found = self.command_rows(np.array([stamp], dtype=float), names, velocity, effort)
+        return None if found is None else found[0].sample(0)
