@@ -29,6 +29,13 @@ def _align(offset, size):
     return ENCAPSULATION_SIZE + (body + size - 1) // size * size
 
 
+def _string(raw, offset, length):
+    """A CDR string at ``offset``: its uint32 length counts the terminating NUL."""
+    if length == 0 or offset + 4 + length > len(raw):
+        raise struct.error('bad string length')
+    return raw[offset + 4:offset + 3 + length].decode()
+
+
 @dataclass(frozen=True)
 class JointStateLayout:
     """The byte layout of a family of JointState messages.
@@ -52,7 +59,7 @@ class JointStateLayout:
         try:
             offset = STAMP_END
             length, = UINT32.unpack_from(raw, offset)
-            frame_id = raw[offset + 4:offset + 4 + length].rstrip(b'\x00').decode()
+            frame_id = _string(raw, offset, length)
             offset = _align(offset + 4 + length, 4)
             count, = UINT32.unpack_from(raw, offset)
             offset += 4
@@ -60,7 +67,7 @@ class JointStateLayout:
             for _ in range(count):
                 offset = _align(offset, 4)
                 length, = UINT32.unpack_from(raw, offset)
-                names.append(raw[offset + 4:offset + 4 + length].rstrip(b'\x00').decode())
+                names.append(_string(raw, offset, length))
                 offset += 4 + length
             arrays, fixed, fixed_start = [], [], STAMP_END
             for _ in ARRAY_FIELDS:

@@ -19,13 +19,13 @@ def add_parser(subparsers):
     parser = subparsers.add_parser(
         NAME, help='identify model parameters from a nominal recording',
         description='Fit inertias, viscous and Coulomb friction (least squares), the firmware PI '
-                    'gains (velocity mode), run the report\'s friction sweep, report the fit (NRMSE '
+                    'gains and input delay (velocity mode), run the report\'s friction sweep, report the fit (NRMSE '
                     'per wheel) and learn the residual noise floors the thresholds use. Writes a '
                     'parameter file for `replay --params`.')
     parser.add_argument('bag', help='rosbag2 directory of nominal (fault-free) driving')
     parser.add_argument('--output', required=True, help='parameter file to write (YAML)')
     parser.add_argument('--profile', default='youbot', help='prior profile (default: youbot)')
-    parser.add_argument('--no-gains', action='store_true', help='do not fit the firmware PI gains')
+    parser.add_argument('--no-gains', action='store_true', help='do not fit the firmware PI gains and input delay')
     parser.add_argument('--plot', metavar='FILE', help='write the friction sweep (Fig. 5.10) here')
     parser.set_defaults(run=run)
 
@@ -45,6 +45,8 @@ def run(args):
     print('  Coulomb friction [N·m]: ' + ', '.join(f'{v:.4f}' for v in dyn.coulomb_friction))
     print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
           f'ki {profile.firmware.velocity_ki:.3g} A/rad')
+    if 'input_delay' in result.fdi:
+        print(f'  input delay (commands to wheels): {1000 * result.fdi["input_delay"]:.1f} ms')
     best = result.sweep[0][int(np.argmin(result.sweep[1]))]
     print(f'  friction sweep (report Fig. 5.10): best D = {best:.3f} on the grid '
           f'{result.sweep[0][0]:.3f}..{result.sweep[0][-1]:.3f}')
@@ -55,7 +57,8 @@ def run(args):
               + ', '.join(f'{v:.2%}' for v in result.nrmse_commands))
     verdict = 'holds' if np.all(result.nrmse_currents < 0.01) else 'does not hold'
     print(f'  the report\'s "error below 1 %" {verdict} for this recording')
-    print('  noise floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()))
+    print('  noise floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()
+                                        if k.endswith('_sigma')))
     if args.plot:
         from youbot_fdi.fdi.report import plot_friction_sweep
         plot_friction_sweep(result.sweep, Path(args.plot))

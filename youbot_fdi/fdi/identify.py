@@ -7,8 +7,10 @@
    without rotation says nothing about J_z).
 2. **The report's friction sweep** (Fig. 5.10): the open-loop model driven by the measured currents
    for D on a grid, RMSE against the measured speeds.
-3. **Firmware PI gains** (velocity-mode recordings): the command-path prediction fitted to the
-   measured speeds (Nelder-Mead on log gains).
+3. **Firmware PI gains and input delay** (velocity-mode recordings): the command-path prediction
+   fitted to the measured speeds: Nelder-Mead on log gains, the delay on a 2.5 ms grid (the
+   prediction is not smooth in it), then the gains again at that delay. The FDI predicts with the
+   delay (``input_delay``).
 4. **Fit quality**: NRMSE per wheel (RMSE / range of the measured speed) of the current-driven and
    the command-driven predictions, to test the report's "< 1 %" claim.
 5. **Noise floors**: the residual generator run over the recording with the identified model; each
@@ -24,7 +26,7 @@ import scipy.signal
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.residuals import ResidualGenerator
-from youbot_fdi.fdi.samples import JointSample
+from youbot_fdi.fdi.samples import CommandBatch, JointBatch
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
 
@@ -35,6 +37,7 @@ SWEEP = np.arange(0.010, 0.0451, 0.005)  # report Fig. 5.10 grid [N·m·s/rad]
 SAFETY = 1.5  # noise floors = safety * what the nominal recording needs
 FLOOR_FRACTION = 0.25  # never below this fraction of the configured floor
 MIN_SAMPLES = 50
+DELAYS = np.arange(0.0, 0.0801, 0.0025)  # input-delay grid [s]
 SIGMA_FAMILIES = {'torque': 'torque_sigma', 'observer': 'observer_sigma', 'encoder': 'encoder_sigma'}
 
 
@@ -140,30 +143,37 @@ def simulate_from_currents(model, arrays):
     return predicted
 
 
-def _commanded(arrays, generator):
-    """Yield (k, stamp) over the samples, first handing ``generator`` the commands up to each."""
+def run_generator(model, arrays, settings):
+    """The residual generator over the whole recording in one block; a command counts as received
+    before the joint states stamped at or after it. Returns a ResidualBatch."""
+    signs = model.kinematics.drive_signs
     commands = sorted(arrays.commands, key=lambda c: c.stamp)
-    index = 0
-    for k, stamp in enumerate(arrays.time):
-        while index < len(commands) and commands[index].stamp <= stamp:
-            generator.command(commands[index])
-            index += 1
-        yield k, stamp
+    command_batch = (CommandBatch.from_samples(commands) if commands
+                     else CommandBatch.empty(model.dynamics.n_wheels))
+    generator = ResidualGenerator(model, settings)
+    joints = JointBatch(arrays.time, signs * arrays.position, signs * arrays.velocity, signs * arrays.torque)
+    return generator.update_batch(joints, command_batch,
+                                  np.searchsorted(command_batch.stamp, arrays.time, side='right'))
 
 
-def simulate_from_commands(model, arrays):
-    """Wheel speeds predicted from the velocity commands through the firmware loop (§5.2.3)."""
+def simulate_from_commands(model, arrays, input_delay=0.0):
+    """Wheel speeds predicted from the commands through the firmware loop (§5.2.3), the commands
+    acting ``input_delay`` [s] after their stamps."""
     from youbot_fdi.fdi.settings import FdiSettings
-    generator = ResidualGenerator(model, FdiSettings())
-    predicted = np.empty_like(arrays.velocity)
-    for k, stamp in _commanded(arrays, generator):
-        if k == 0:
-            generator.start(stamp, arrays.position[0], arrays.velocity[0], arrays.torque[0])
-            predicted[0] = arrays.velocity[0]
-            continue
-        predicted[k] = generator.predict_command_path(stamp, stamp - arrays.time[k - 1],
-                                                      arrays.velocity[k])
+    batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
+    predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
+    predicted[np.searchsorted(arrays.time, batch.stamp)] = batch.command_speed
     return predicted
+
+
+def fit_input_delay(model, arrays, delays=DELAYS):
+    """The input delay [s] on the grid ``delays`` that best explains the measured speeds from the
+    commands, and the mean squared errors [(rad/s)²] on the grid; None without velocity commands."""
+    if not any(c.kind == 'velocity' for c in arrays.commands):
+        return None
+    errors = np.array([np.mean((arrays.velocity - simulate_from_commands(model, arrays, d)) ** 2)
+                       for d in delays])
+    return float(delays[int(np.argmin(errors))]), errors
 
 
 def nrmse(measured, predicted):
@@ -183,7 +193,7 @@ def friction_sweep(model, arrays, values=SWEEP):
     return np.asarray(values, dtype=float), np.array(rmse)
 
 
-def fit_firmware_gains(model, arrays):
+def fit_firmware_gains(model, arrays, input_delay=0.0):
     """Velocity PI gains that make the command-path prediction match; None without velocity commands."""
     if not any(c.kind == 'velocity' for c in arrays.commands):
         return None
@@ -193,7 +203,7 @@ def fit_firmware_gains(model, arrays):
         kp, ki = np.exp(log_gains)
         trial = PlatformModel(replace(model.profile, firmware=replace(model.firmware, velocity_kp=kp,
                                                                       velocity_ki=ki)))
-        return float(np.mean((arrays.velocity - simulate_from_commands(trial, arrays)) ** 2))
+        return float(np.mean((arrays.velocity - simulate_from_commands(trial, arrays, input_delay)) ** 2))
 
     result = scipy.optimize.minimize(cost, start, method='Nelder-Mead',
                                      options={'xatol': 0.02, 'fatol': 1e-6, 'maxfev': 60})
@@ -203,20 +213,14 @@ def fit_firmware_gains(model, arrays):
 
 def noise_floors(model, arrays, settings):
     """Per residual family, the floor that keeps this (nominal) recording inside its bounds."""
-    generator = ResidualGenerator(model, settings)
-    needed = {family: 0.0 for family in SIGMA_FAMILIES}
-    signs = model.kinematics.drive_signs
-    for k, stamp in _commanded(arrays, generator):
-        frame = generator.update(JointSample(stamp, signs * arrays.position[k],
-                                             signs * arrays.velocity[k], signs * arrays.torque[k]))
-        if frame is None:
-            continue
-        for family, key in SIGMA_FAMILIES.items():
-            sigma = getattr(settings, key)
-            excess = np.abs(frame.values[family]) - (frame.bounds[family] - sigma)
-            needed[family] = max(needed[family], float(np.nanmax(excess)))
-    return {SIGMA_FAMILIES[f]: max(SAFETY * v, FLOOR_FRACTION * getattr(settings, SIGMA_FAMILIES[f]))
-            for f, v in needed.items()}
+    batch = run_generator(model, arrays, settings)
+    floors = {}
+    for family, key in SIGMA_FAMILIES.items():
+        sigma = getattr(settings, key)
+        excess = np.abs(batch.values[family]) - (batch.bounds[family] - sigma)
+        needed = float(np.nanmax(excess, initial=0.0)) if len(batch) else 0.0
+        floors[key] = max(SAFETY * max(needed, 0.0), FLOOR_FRACTION * sigma)
+    return floors
 
 
 @dataclass(frozen=True)
@@ -236,14 +240,25 @@ def identify(path, prior_model, settings, fit_gains=True):
     arrays = read_arrays(path, prior_model)
     dynamics, info = fit_dynamics(arrays, prior_model)
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))
-    firmware = fit_firmware_gains(model, arrays) if fit_gains else None
+    firmware, delay = None, None
+    if fit_gains:
+        firmware = fit_firmware_gains(model, arrays)
     if firmware is not None:
         model = PlatformModel(replace(model.profile, firmware=firmware))
+        delay, delay_errors = fit_input_delay(model, arrays)
+        firmware = fit_firmware_gains(model, arrays, delay)  # again, with the delay
+        model = PlatformModel(replace(model.profile, firmware=firmware))
+        info['input_delay_grid'] = {'delay_s': [round(float(d), 4) for d in DELAYS],
+                                    'mse': [float(f'{e:.4g}') for e in delay_errors]}
     sweep = friction_sweep(model, arrays)
     nrmse_currents = nrmse(arrays.velocity, simulate_from_currents(model, arrays))
-    nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays))
+    nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays, delay))
                       if firmware is not None else None)
+    if delay is not None:
+        settings = replace(settings, input_delay=delay)
     fdi = noise_floors(model, arrays, settings)
+    if delay is not None:
+        fdi['input_delay'] = delay
     info.update({'recording': str(path), 'samples': int(len(arrays.time)),
                  'duration_s': float(arrays.time[-1] - arrays.time[0]),
                  'commands': len(arrays.commands)})

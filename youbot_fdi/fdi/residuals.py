@@ -43,6 +43,8 @@ FAMILIES = ('torque', 'observer', 'command', 'encoder')
 SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
            ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'))
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
+#: Commands kept while no joint state arrives (a bound on memory, far above any input delay).
+MAX_PENDING_COMMANDS = 256
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,8 @@ class ResidualFrame:
 @dataclass(frozen=True)
 class ResidualBatch:
     """The residual frames of a block of samples: ``stamp`` (N,), ``velocity_mode`` (N,) bool,
-    everything else (N, n) as in :class:`ResidualFrame` (``values``/``bounds`` per family)."""
+    everything else (N, n) as in :class:`ResidualFrame` (``values``/``bounds`` per family), and
+    ``command_speed``: the speed the command path predicts [rad/s] (kinematic convention)."""
 
     stamp: np.ndarray
     values: dict
@@ -129,6 +132,7 @@ class ResidualBatch:
     command: np.ndarray
     frozen: np.ndarray
     effort_frozen: np.ndarray
+    command_speed: np.ndarray
 
     def __len__(self):
         return len(self.stamp)
@@ -144,7 +148,7 @@ class ResidualBatch:
     def select(self, rows):
         """The rows ``rows`` (index array, mask or slice) as a batch."""
         pick = {f: getattr(self, f)[rows] for f in ('stamp', 'velocity', 'torque', 'velocity_mode',
-                                                   'command', 'frozen', 'effort_frozen')}
+                                                   'command', 'frozen', 'effort_frozen', 'command_speed')}
         return ResidualBatch(values={f: v[rows] for f, v in self.values.items()},
                              bounds={f: b[rows] for f, b in self.bounds.items()}, **pick)
 
@@ -162,7 +166,7 @@ class ResidualBatch:
         batches = list(batches)
         join = {f: np.concatenate([getattr(b, f) for b in batches])
                 for f in ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen',
-                          'effort_frozen')}
+                          'effort_frozen', 'command_speed')}
         return cls(values={f: np.concatenate([b.values[f] for b in batches]) for f in FAMILIES},
                    bounds={f: np.concatenate([b.bounds[f] for b in batches]) for f in FAMILIES},
                    **join)
@@ -197,9 +201,7 @@ class ResidualGenerator:
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
-        self.command_mode = VELOCITY
-        self.command_values = np.zeros(self.n)
-        self.command_stamp = -np.inf
+        self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
         self._last = None
         self.skipped = 0
 
@@ -258,25 +260,42 @@ class ResidualGenerator:
     # ------------------------------------------------------------------ commands
     def command(self, sample):
         """Take a /wheel_commands sample (:class:`~youbot_fdi.fdi.samples.CommandSample`)."""
-        self.command_mode = sample.kind
-        self.command_values = self.signs * np.asarray(sample.values, dtype=float)
-        self.command_stamp = sample.stamp
+        self._commands_in_force(np.empty(0), CommandBatch.from_samples([sample]), np.empty(0, dtype=int))
 
     def _commands_in_force(self, stamp, commands=None, commands_before=None):
-        """(velocity mode (N,) bool, target (N, n) kinematic) at each stamp: the latest command,
-        or zero speed once it is older than the shim's watchdog (``command_timeout``)."""
-        rows = len(stamp)
-        velocity_mode = np.full(rows, self.command_mode == VELOCITY)
-        values = self.command_values
-        command_stamp = np.full(rows, self.command_stamp)
+        """(velocity mode (N,) bool, target (N, n) kinematic) at each stamp (N,).
+
+        In force at a sample: the latest command received before it whose stamp is at least
+        ``input_delay`` old (the time a command takes to act), or zero speed once that is older than
+        the shim's watchdog (``command_timeout``) or when there is none. Keeps the commands that may
+        still come into force.
+        """
+        known = self._known_commands
         if commands is not None and len(commands):
-            pick = np.asarray(commands_before) - 1
-            taken, pick = pick >= 0, np.maximum(pick, 0)
-            velocity_mode = np.where(taken, commands.velocity_mode[pick], velocity_mode)
-            values = np.where(taken[:, None], self.signs * commands.values[pick], values)
-            command_stamp = np.where(taken, commands.stamp[pick], command_stamp)
-            self.command(commands.sample(len(commands) - 1))
-        expired = stamp - command_stamp > self.settings.command_timeout
+            known = CommandBatch(np.concatenate([known.stamp, commands.stamp]),
+                                 np.concatenate([known.velocity_mode, commands.velocity_mode]),
+                                 np.concatenate([known.values, self.signs * commands.values]))
+            received = len(self._known_commands) + np.asarray(commands_before, dtype=int)
+        else:
+            received = np.full(len(stamp), len(known))
+        delay = self.settings.input_delay
+        if delay > 0.0:
+            due = np.searchsorted(known.stamp, stamp - delay, side='right')
+            received = np.minimum(received, due)
+        index = received - 1
+        pick = np.maximum(index, 0)
+        none = index < 0
+        if len(known):
+            command_stamp = np.where(none, -np.inf, known.stamp[pick])
+            velocity_mode, values = known.velocity_mode[pick], known.values[pick]
+        else:
+            command_stamp = np.full(len(stamp), -np.inf)
+            velocity_mode, values = np.ones(len(stamp), dtype=bool), np.zeros((len(stamp), self.n))
+        expired = stamp - (command_stamp + delay) > self.settings.command_timeout
+        first_kept = int(index[-1]) if len(stamp) else len(known) - MAX_PENDING_COMMANDS
+        first_kept = max(first_kept, len(known) - MAX_PENDING_COMMANDS, 0)
+        self._known_commands = CommandBatch(known.stamp[first_kept:], known.velocity_mode[first_kept:],
+                                            known.values[first_kept:])
         return velocity_mode | expired, np.where(expired[:, None], 0.0, values)
 
     # ------------------------------------------------------------------ state
@@ -291,12 +310,11 @@ class ResidualGenerator:
             return None
         return self.signs * self._observer, self.signs * self._command_state[:self.n]
 
-    def start(self, stamp, position, velocity, torque):
-        """(Re)start from one sample: kinematic convention, [s], [rad], [rad/s], [N·m]."""
-        velocity_mode, target = self._commands_in_force(np.array([stamp]))
-        integral = self._start_integral(torque, velocity, velocity_mode[0], target[0])
+    def _start(self, stamp, position, velocity, torque):
+        """Start from one sample (kinematic convention, [s], [rad], [rad/s], [N·m]); the rows
+        that restart later are handled in :meth:`update_batch`."""
         self._observer = velocity.copy()
-        self._command_state = np.concatenate([velocity, integral])
+        self._command_state = np.concatenate([velocity, np.zeros(self.n)])
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._last = (stamp, position, velocity, torque)
@@ -367,17 +385,6 @@ class ResidualGenerator:
                     break
         return states
 
-    def predict_command_path(self, stamp, dt, velocity):
-        """Advance only the command-path prediction by ``dt`` [s] to ``stamp``; returns the
-        predicted wheel speeds [rad/s] (kinematic convention). ``velocity`` is the measured speed
-        (kinematic): the Coulomb friction is taken there, and current mode follows it."""
-        velocity_mode, target = self._commands_in_force(np.array([stamp]))
-        held = np.concatenate([velocity, np.zeros(self.n)])[None]
-        states = self._command_path(np.array([dt]), ~velocity_mode, held, velocity_mode, target,
-                                    self._coulomb(velocity)[None])
-        self._command_state = states[-1]
-        return self._command_state[:self.n]
-
     # ------------------------------------------------------------------ the update
     def update(self, sample):
         """Residuals for one /joint_states sample (:class:`~youbot_fdi.fdi.samples.JointSample`):
@@ -403,10 +410,10 @@ class ResidualGenerator:
         if rows == 0:
             empty = np.empty((0, n))
             return self._batch(stamp, *(empty,) * 10, velocity_mode, target, empty.astype(int),
-                               empty.astype(int))
+                               empty.astype(int), empty)
         first = self._last is None
         if first:
-            self.start(stamp[0], position[0], velocity[0], torque[0])
+            self._start(stamp[0], position[0], velocity[0], torque[0])
         last_stamp, last_position, last_velocity, last_torque = self._last
         prev_stamp = np.concatenate([[last_stamp], stamp[:-1]])
         prev_position, prev_velocity, prev_torque = (
@@ -480,13 +487,14 @@ class ResidualGenerator:
         self._frozen, self._effort_frozen, self._started = frozen[-1], effort_frozen[-1], started[-1]
         batch = self._batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u,
                             encoder_r, encoder_u, velocity, torque, velocity_mode, target, frozen,
-                            effort_frozen)
+                            effort_frozen, speed)
         return batch.select(~restart) if restart.any() else batch
 
     @staticmethod
     def _batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u, encoder_r,
-               encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen):
+               encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen,
+               command_speed):
         values = dict(zip(FAMILIES, (torque_r, observer_r, command_r, encoder_r)))
         bounds = dict(zip(FAMILIES, (torque_u, observer_u, command_u, encoder_u)))
         return ResidualBatch(stamp, values, bounds, velocity, torque, velocity_mode, target, frozen,
-                             effort_frozen)
+                             effort_frozen, command_speed)

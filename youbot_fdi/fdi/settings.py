@@ -30,7 +30,8 @@ class FdiSettings:
     command_sigma: float = 0.4
     command_speed_fraction: float = 0.15
     command_transient_fraction: float = 1.0
-    command_delay: float = 0.04  # how late a command may reach the base after we saw it [s]
+    input_delay: float = 0.0  # a command acts this long after its stamp (``identify`` estimates it) [s]
+    command_delay: float = 0.04  # how far the input delay may vary (timing jitter allowance) [s]
     # command_<w>: current mode, measured minus commanded effort [N·m]
     effort_sigma: float = 0.02
     effort_fraction: float = 0.1

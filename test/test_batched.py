@@ -1,0 +1,274 @@
+"""The batched replay path equals the one-sample-at-a-time path the live nodes run.
+
+Block decoding against rosbags, chunked reading against message-by-message reading, the batched
+residual generator and decision maker against their per-sample updates, the vectorised recursions
+against their loops.
+"""
+import math
+
+from hypothesis import given, settings, strategies as st
+import numpy as np
+import pytest
+
+from youbot_fdi.bag import RecordingReader, RecordingWriter
+from youbot_fdi.bag.cdr import JointStateLayout
+from youbot_fdi.cli.replay import build_pipeline
+from youbot_fdi.fdi.decision import DecisionMaker
+from youbot_fdi.fdi.pipeline import load_residual_data
+from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, run_lengths
+from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
+from youbot_fdi.fdi.samples import SampleMapper
+from youbot_fdi.model import load_model
+from youbot_fdi.model.scenario import load_script
+from youbot_fdi.recordings import record_drive
+
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+SMALL_CHUNK = 37  # messages: many chunk boundaries, none aligned with anything
+
+
+@pytest.fixture(scope='module')
+def typestore():
+    from rosbags.typesys import get_typestore, Stores
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def joint_state(typestore, sec, nanosec, frame_id, names, position, velocity, effort):
+    types = typestore.types
+    header = types['std_msgs/msg/Header'](
+        stamp=types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec), frame_id=frame_id)
+    return types[JOINT_STATE](header=header, name=list(names), position=np.array(position, dtype=float),
+                              velocity=np.array(velocity, dtype=float), effort=np.array(effort, dtype=float))
+
+
+floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
+arrays = st.lists(floats, max_size=6)
+
+
+@settings(max_examples=150, deadline=None)
+@given(sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
+       frame_id=st.text(max_size=9), names=st.lists(st.text(max_size=7), max_size=5),
+       position=arrays, velocity=arrays, effort=arrays)
+def test_block_decoding_equals_rosbags(typestore, sec, nanosec, frame_id, names, position,
+                                       velocity, effort):
+    msg = joint_state(typestore, sec, nanosec, frame_id, names, position, velocity, effort)
+    raw = bytes(typestore.serialize_cdr(msg, JOINT_STATE))
+    layout = JointStateLayout.parse(raw)
+    assert layout is not None and layout.matches(raw)
+    assert layout.names == tuple(names) and layout.frame_id == frame_id
+    stamps, decoded = layout.decode([raw, raw])
+    assert stamps.tolist() == [sec + nanosec / 1e9] * 2
+    for got, expected in zip(decoded, (position, velocity, effort)):
+        np.testing.assert_array_equal(got, np.array([expected, expected], dtype=float).reshape(2, -1))
+
+
+def test_a_layout_recognises_its_messages_only(typestore):
+    def raw(names, position, frame_id=''):
+        msg = joint_state(typestore, 5, 7, frame_id, names, position, [1.0, 2.0], [])
+        return bytes(typestore.serialize_cdr(msg, JOINT_STATE))
+
+    layout = JointStateLayout.parse(raw(['fl', 'fr'], [0.5, 0.25]))
+    assert layout.matches(raw(['fl', 'fr'], [-3.0, 9.0]))
+    assert not layout.matches(raw(['fl', 'rr'], [0.5, 0.25]))  # same length, other name
+    assert not layout.matches(raw(['fl', 'fr'], [0.5]))  # other array length
+    assert not layout.matches(raw(['fl', 'fr'], [0.5, 0.25], 'x'))
+    big_endian = b'\x00\x00' + raw(['fl', 'fr'], [0.5, 0.25])[2:]
+    assert JointStateLayout.parse(big_endian) is None  # left to rosbags
+    assert JointStateLayout.parse(b'\x00\x01\x00\x00\x01') is None
+
+
+@pytest.fixture(scope='module')
+def model():
+    return load_model('youbot')
+
+
+def test_chunks_equal_reading_message_by_message(tmp_path, model, typestore):
+    """Layout changes, bad messages and both command kinds, across chunk boundaries."""
+    names = list(model.wheel_names)
+    path = tmp_path / 'mixed'
+    rng = np.random.default_rng(4)
+    with RecordingWriter(path, names, storage='mcap') as writer:
+        for k in range(300):
+            stamp = 50 + 0.01 * k
+            values = rng.normal(size=(3, 4))
+            if k % 50 == 7:
+                values[1, 2] = math.nan
+            if k % 70 == 11:
+                writer.joint_state(stamp, values[0][:3], values[1], values[2])  # short
+                continue
+            if 120 <= k < 160:
+                writer.names = names[::-1]  # another layout for a while, other joint order
+            elif 160 <= k < 170:
+                writer.names = names + ['gripper']
+            else:
+                writer.names = names
+            writer.joint_state(stamp, *values)
+            if k % 3 == 0:
+                writer.wheel_command(stamp, 'velocity' if k % 2 else 'effort', values[0])
+            if k == 200:
+                writer.joint_state(stamp + 0.001, values[0], [], values[2])  # no velocity
+    with RecordingReader(path, names) as reader:
+        chunked = list(reader.samples())
+        counters = dict(reader.counters)
+    mapper = SampleMapper(names)
+    expected = []
+    with RecordingReader(path, names) as reader:
+        for connection, timestamp, raw in reader._reader.messages(connections=reader.connections):
+            msg = typestore.deserialize_cdr(raw, JOINT_STATE)
+            if connection.topic == '/joint_states':
+                stamp = msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9
+                sample = mapper.joint_sample(stamp, msg.name, msg.position, msg.velocity, msg.effort)
+            else:
+                sample = mapper.command_sample(timestamp / 1e9, msg.name, msg.velocity, msg.effort)
+            if sample is not None:
+                expected.append(sample)
+    assert counters == mapper.counters
+    assert counters['skipped_nan'] > 0 and counters['skipped_short'] > 0
+    assert counters['skipped_no_values'] == 1
+    assert len(chunked) == len(expected) > 300
+    for got, want in zip(chunked, expected):
+        assert type(got) is type(want) and got.stamp == want.stamp
+        for field in ('position', 'velocity', 'effort', 'kind', 'values'):
+            if hasattr(want, field):
+                np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+
+
+@pytest.fixture(scope='module')
+def recordings(tmp_path_factory, model):
+    """A stuck wheel (the PI loop saturates), a runaway, a freeze, and current mode."""
+    _, script = load_script()
+    root = tmp_path_factory.mktemp('batched')
+    return {
+        'stuck': record_drive(root / 'stuck', model, script, fault='stuck', wheel='wheel_joint_fr',
+                              fault_time=4.0).path,
+        'runaway': record_drive(root / 'runaway', model, script, fault='runaway',
+                                wheel='wheel_joint_bl', fault_time=6.0).path,
+        'freeze': record_drive(root / 'freeze', model, script, fault='encoder_freeze',
+                               wheel='wheel_joint_fl', fault_time=5.0).path,
+        'effort': record_drive(root / 'effort', model, script, mode='effort', fault='torque_loss',
+                               wheel='wheel_joint_br', fault_time=5.0).path,
+    }
+
+
+def sample_by_sample(path, model, settings):
+    """Residual frames and events the way the live nodes compute them: one message at a time."""
+    generator = ResidualGenerator(model, settings)
+    decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
+    frames, events = [], []
+    with RecordingReader(path, model.wheel_names) as reader:
+        for sample in reader.samples():
+            if hasattr(sample, 'kind'):
+                generator.command(sample)
+                continue
+            frame = generator.update(sample)
+            if frame is not None:
+                frames.append(frame)
+                events += decision.update(frame)
+    return frames, events
+
+
+@pytest.mark.parametrize('name', ['stuck', 'runaway', 'freeze', 'effort'])
+def test_batched_replay_equals_sample_by_sample(recordings, model, name):
+    _, pipeline = build_pipeline(keep_frames=True)
+    stepped = []
+    original = pipeline.generator._stepped
+    pipeline.generator._stepped = lambda *args: stepped.append(1) or original(*args)
+    with RecordingReader(recordings[name], model.wheel_names) as reader:
+        events = [e for chunk in reader.chunks(size=SMALL_CHUNK) for e in pipeline.feed(chunk)]
+    frames, expected = sample_by_sample(recordings[name], model, pipeline.settings)
+    assert [e.to_dict() for e in events] == [e.to_dict() for e in expected]
+    assert any(e.level == 'ERROR' for e in events)
+    batch = pipeline.residuals()
+    np.testing.assert_array_equal(batch.stamp, [f.stamp for f in frames])
+    for family in FAMILIES:
+        np.testing.assert_allclose(batch.values[family], [f.values[family] for f in frames],
+                                   rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(batch.bounds[family], [f.bounds[family] for f in frames],
+                                   rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(batch.frozen, [f.frozen for f in frames])
+    np.testing.assert_array_equal(batch.effort_frozen, [f.effort_frozen for f in frames])
+    if name == 'stuck':
+        assert stepped, 'the saturating PI loop was never stepped period by period'
+
+
+def test_gaps_and_repeated_stamps_restart_both_paths_alike(tmp_path, model):
+    """Missing and repeated samples: the generator restarts at the same rows either way."""
+    _, pipeline = build_pipeline(keep_frames=True)
+    path = tmp_path / 'jumpy'
+    rng = np.random.default_rng(9)
+    stamps = 20 + 0.01 * np.arange(400)
+    stamps[100:] += 0.5  # a gap: comm_loss of the base
+    stamps[201] = stamps[200]  # a repeated stamp
+    with RecordingWriter(path, model.wheel_names) as writer:
+        for stamp in stamps:
+            writer.joint_state(stamp, *rng.normal(scale=0.1, size=(3, 4)))
+    with RecordingReader(path, model.wheel_names) as reader:
+        events = [e for chunk in reader.chunks(size=SMALL_CHUNK) for e in pipeline.feed(chunk)]
+    frames, _ = sample_by_sample(path, model, pipeline.settings)
+    assert len(pipeline.residuals()) == len(frames) == len(stamps) - 3
+    np.testing.assert_allclose(pipeline.residuals().values['torque'],
+                               [f.values['torque'] for f in frames], rtol=1e-9, atol=1e-12)
+    assert [(e.level, e.fault) for e in events if e.wheel is None] == [('ERROR', 'comm_loss'),
+                                                                        ('OK', 'comm_loss')]
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(0, 40), size=st.integers(1, 5), seed=st.integers(0, 2**32 - 1))
+def test_affine_recursion_equals_its_loop(rows, size, seed):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(scale=0.6, size=(rows, size, size))
+    a[rng.random(rows) < 0.2] = 0.0  # restarts
+    b = rng.normal(size=(rows, size))
+    x = x0 = rng.normal(size=size)
+    expected = []
+    for k in range(rows):
+        x = a[k] @ x + b[k]
+        expected.append(x)
+    got = affine_recursion(a, b, x0)
+    assert got.shape == (rows, size)
+    np.testing.assert_allclose(got, np.reshape(expected, (rows, size)), rtol=1e-9, atol=1e-9)
+
+
+@settings(max_examples=80, deadline=None)
+@given(flags=st.lists(st.lists(st.booleans(), min_size=3, max_size=3), max_size=30),
+       carry=st.lists(st.integers(0, 9), min_size=3, max_size=3), seed=st.integers(0, 999))
+def test_run_lengths_and_last_values_equal_their_loops(flags, carry, seed):
+    rows = len(flags)
+    flags = np.array(flags, dtype=bool).reshape(rows, 3)
+    restart = np.random.default_rng(seed).random(rows) < 0.15
+    count, expected = np.array(carry), []
+    for k in range(rows):
+        count = np.where(flags[k] & ~restart[k], count + 1, 0)
+        expected.append(count)
+    np.testing.assert_array_equal(run_lengths(flags, np.array(carry), restart),
+                                  np.reshape(expected, (rows, 3)))
+    values = np.arange(rows) * 10.0
+    latest, expected = -1.0, []
+    for k in range(rows):
+        latest = values[k] if restart[k] else latest
+        expected.append(latest)
+    np.testing.assert_array_equal(last_true_value(restart, values, -1.0), expected)
+
+
+@settings(max_examples=80, deadline=None)
+@given(rows=st.integers(1, 60), seed=st.integers(0, 2**32 - 1))
+def test_batched_alarms_equal_the_sequential_latch(model, rows, seed):
+    """persistence/release hysteresis over a block, from any state it was left in."""
+    from youbot_fdi.fdi.settings import FdiSettings
+    settings_ = FdiSettings(persistence=3, release=5)
+    rng = np.random.default_rng(seed)
+    shape = (len(FAMILIES), 4)
+    batched = DecisionMaker(model.wheel_names, settings_, load_residual_data())
+    batched._above = rng.integers(0, 4, size=shape)
+    batched._below = rng.integers(0, 6, size=shape)
+    batched.alarm = rng.random(shape) < 0.5
+    above, below, alarm = batched._above.copy(), batched._below.copy(), batched.alarm.copy()
+    over = rng.random((rows, *shape)) < rng.random()
+    excited = rng.random((rows, 4)) < 0.7
+    got = batched._alarms(over, excited)
+    for k in range(rows):
+        above = np.where(over[k], above + 1, 0)
+        below = np.where(over[k], 0, np.where(excited[k], below + 1, below))
+        alarm = np.where(above >= 3, True, np.where(below >= 5, False, alarm))
+        np.testing.assert_array_equal(got[k], alarm)
+    np.testing.assert_array_equal(batched._above, above)
+    np.testing.assert_array_equal(batched._below, below)
