@@ -185,6 +185,22 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
     assert alarms[0].wheel == 'wheel_joint_br' and alarms[0].fault == 'stuck'
 
 
+def test_identify_measures_the_input_delay(tmp_path, model):
+    """A base that reports 40 ms late looks like commands acting 40 ms later; identify finds it
+    within the grid step plus a sample, and the FDI, predicting with it, stays quiet."""
+    from youbot_fdi.fdi.identify import DELAYS, fit_input_delay, read_arrays
+    found = {}
+    for late in (0.0, 0.04):
+        path = record_drive(tmp_path / f'late_{late}', model, SCRIPT, measurement_delay=late).path
+        found[late], errors = fit_input_delay(model, read_arrays(path, model))
+        assert len(errors) == len(DELAYS)
+    assert found[0.04] - found[0.0] == pytest.approx(0.04, abs=0.0125)
+    params = tmp_path / 'late.yaml'
+    assert main(['identify', str(tmp_path / 'late_0.04'), '--output', str(params)]) == 0
+    assert load_profile(params).fdi['input_delay'] == pytest.approx(found[0.04], abs=0.0051)
+    assert replay(tmp_path / 'late_0.04', params) == []
+
+
 def test_replay_cli_runs_as_a_process(recordings, tmp_path):
     result = subprocess.run([sys.executable, '-m', 'youbot_fdi.cli.main', 'replay',
                              str(recordings['friction'].path), '--events', str(tmp_path / 'e.jsonl')],

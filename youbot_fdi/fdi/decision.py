@@ -19,8 +19,7 @@
    stamp; ``OK`` when every alarm behind a fault has cleared, counting only samples in which the
    wheel moved or carried current (a standing wheel proves nothing).
 """
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import json
 
 import numpy as np
@@ -67,7 +66,7 @@ class _Component:
     fault: str = ''
     since: float = 0.0
     refined: bool = False
-    history: deque = field(default_factory=deque)
+    cleared: int = -1  # the classification history counts rows after this one
 
 
 class DecisionMaker:
@@ -95,6 +94,12 @@ class DecisionMaker:
         self.components = {w: _Component() for w in self.wheel_names}
         self.components[BASE] = _Component()
         self.samples = 0
+        # The recent rows (torque residual, torque, speed; stamps) for naming fault types; row r
+        # of the arrays is row ``_recent_first + r`` of the stream, ``_row`` the one being judged.
+        self._recent = (np.empty(0), *(np.empty((0, self.n)),) * 3)
+        self._recent_first = 0
+        self._row = -1
+        self._isolation_cache = {}
 
     def _signatures(self, residual_data):
         """fault -> (kind, wheel index, set of torque-family wheel indices, observer indices)."""
@@ -162,14 +167,18 @@ class DecisionMaker:
         """
         if not fired:
             return {}
-        hypotheses = [(len(torque - fired), 1, kind, wheel)
-                      for kind, wheel, torque, _ in self.signatures.values() if fired <= torque]
-        hypotheses.append((0, len(fired), 'actuator', None))
-        silent, size, kind, _ = min(hypotheses, key=lambda h: (h[0], h[1]))
-        winners = [h for h in hypotheses if (h[0], h[1]) == (silent, size)]
-        if any(h[2] in ACTUATOR_CLASS for h in winners):
+        if fired not in self._isolation_cache:
+            hypotheses = [(len(torque - fired), 1, kind, wheel)
+                          for kind, wheel, torque, _ in self.signatures.values() if fired <= torque]
+            hypotheses.append((0, len(fired), 'actuator', None))
+            silent, size, kind, _ = min(hypotheses, key=lambda h: (h[0], h[1]))
+            winners = [h for h in hypotheses if (h[0], h[1]) == (silent, size)]
+            self._isolation_cache[fired] = (
+                None if any(h[2] in ACTUATOR_CLASS for h in winners)
+                else [h[3] for h in winners if h[2] == SENSOR_CLASS])
+        sensors = self._isolation_cache[fired]
+        if sensors is None:
             return {w: 'actuator' for w in fired}
-        sensors = [h[3] for h in winners if h[2] == SENSOR_CLASS]
         observed = [w for w in sensors if self._family('observer')[w]]
         wheel = max(observed or sensors, key=lambda w: z_observer[w])
         return {wheel: SENSOR_CLASS}
@@ -181,10 +190,9 @@ class DecisionMaker:
         if abs(speed) < self.settings.stuck_speed and (abs(commanded) > self.settings.stuck_speed
                                                        or abs(torque) > self.settings.torque_sigma * 10):
             return FaultKind.STUCK
-        if len(component.history) < 2:
+        residual, measured, speeds = self._history(wheel, component)
+        if len(residual) < 2:
             return FaultKind.UNKNOWN
-        data = np.array(component.history)
-        residual, measured, speeds = data[:, 0], data[:, 1], data[:, 2]
         errors = []
         for regressor in (measured, speeds):
             denominator = float(regressor @ regressor)
@@ -198,7 +206,8 @@ class DecisionMaker:
                 if self.components[name].level == ERROR and self.components[name].fault in faults}
 
     def _diagnose(self, frame, z):
-        """{wheel index: (FaultKind, residual names)} for this frame.
+        """{wheel index: (FaultKind, residual names)} for this frame (None: the actuator/friction
+        class, to be named).
 
         Faults already found explain the residuals they disturb: a speed-sensor fault explains
         every torque and command residual (M couples the wheels), any fault explains the other
@@ -222,8 +231,7 @@ class DecisionMaker:
             if kind == SENSOR_CLASS:
                 diagnoses[wheel] = (FaultKind.UNKNOWN, names + (f'observer_{self.suffixes[wheel]}',))
             else:
-                component = self.components[self.wheel_names[wheel]]
-                diagnoses[wheel] = (self._name_actuator_fault(wheel, frame, component), names)
+                diagnoses[wheel] = (None, names)  # named by _step, only if it needs the name
         faulty = self._active({k.value for k in FaultKind}) | set(diagnoses)
         disagreeing = np.flatnonzero(self._family('command'))
         # Half the wheels or more off their command path at once is not one wheel running away: the commands
@@ -242,7 +250,7 @@ class DecisionMaker:
             return None
         if level != OK and component.level == OK:
             component.since, component.refined = stamp, False
-            component.history.clear()
+            component.cleared = self._row
         component.level, component.fault = level, fault
         return FaultEvent(stamp, level, key, fault, tuple(residuals), detail)
 
@@ -255,6 +263,7 @@ class DecisionMaker:
         self.samples += 1
         self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
                        np.array([frame.stamp]))
+        self._row = self._recent_first + len(self._recent[0]) - 1
         if self._all_ok() and not self._can_diagnose(alarm)[0]:
             return []
         return self._step(frame, z)
@@ -273,45 +282,42 @@ class DecisionMaker:
         alarm = self._alarms(z > 1.0, self._excited(batch.velocity, batch.torque))
         capable = np.flatnonzero(self._can_diagnose(alarm))
         self.samples += rows
-        events, k = [], 0
+        self._remember(batch.values['torque'], batch.torque, batch.velocity, batch.stamp)
+        first = self._recent_first + len(self._recent[0]) - rows
+        final, events, k = self.alarm, [], 0
         while k < rows:
-            stop = k + 1
             if self._all_ok():
                 following = capable[np.searchsorted(capable, k):]
-                stop = int(following[0]) if len(following) else rows
-                if stop > k:
-                    self._remember_rows(batch, k, stop)
-                    k = stop
-                    continue
-                stop = k + 1
-            self._remember_rows(batch, k, stop)
-            final = self.alarm
-            self.alarm = alarm[k]  # the diagnosis sees the alarms as they were at this row
+                if not len(following):
+                    break
+                k = int(following[0])
+            self._row, self.alarm = first + k, alarm[k]  # the diagnosis sees the row's alarms
             events += self._step(batch.frame(k), z[k])
-            self.alarm = final
-            k = stop
+            k += 1
+        self._row, self.alarm = first + rows - 1, final
         return events
 
     def _all_ok(self):
         return all(c.level == OK for c in self.components.values())
 
-    def _remember_rows(self, batch, start, stop):
-        self._remember(batch.values['torque'][start:stop], batch.torque[start:stop],
-                       batch.velocity[start:stop], batch.stamp[start:stop])
-
     def _remember(self, residual, torque, velocity, stamp):
-        """Keep the last ``classification_window`` of torque residual, torque and speed (N, n) per
-        wheel, for naming the fault type."""
-        window = self.settings.classification_window
-        recent = int(np.searchsorted(stamp, stamp[-1] - window))
-        columns = zip(residual[recent:].T.tolist(), torque[recent:].T.tolist(),
-                      velocity[recent:].T.tolist())
-        stamps = stamp[recent:].tolist()
-        for name, (r, t, v) in zip(self.wheel_names, columns):
-            history = self.components[name].history
-            history.extend(zip(r, t, v, stamps))
-            while history and stamps[-1] - history[0][3] > window:
-                history.popleft()
+        """Append rows (torque residual, torque, speed (N, n); stamps (N,)) to the recent rows,
+        dropping those older than ``classification_window`` before the oldest new one."""
+        old_stamp = self._recent[0]
+        keep = int(np.searchsorted(old_stamp, stamp[0] - self.settings.classification_window))
+        self._recent = tuple(np.concatenate([old[keep:], new]) for old, new in
+                             zip(self._recent, (stamp, residual, torque, velocity)))
+        self._recent_first += keep
+
+    def _history(self, wheel, component):
+        """(torque residual, torque, speed) of ``wheel`` over the classification window up to the
+        row being judged, since the component's episode began."""
+        stamps, residual, torque, velocity = self._recent
+        row = self._row - self._recent_first
+        start = max(int(np.searchsorted(stamps[:row + 1],
+                                        stamps[row] - self.settings.classification_window)),
+                    component.cleared + 1 - self._recent_first)
+        return residual[start:row + 1, wheel], torque[start:row + 1, wheel], velocity[start:row + 1, wheel]
 
     def _step(self, frame, z):
         """Diagnose one frame with its scores ``z`` (families, n) and the alarms in ``self.alarm``."""
@@ -325,13 +331,16 @@ class DecisionMaker:
                 if component.level == ERROR:
                     # One episode, one type: named at the alarm, refined once when the window is
                     # full (only between the types the window decides), then kept until OK.
-                    refinable = (component.fault in REFINABLE and kind.value in REFINABLE
-                                 and not component.refined
-                                 and frame.stamp - component.since >= self.settings.classification_window)
-                    if refinable:
+                    due = (component.fault in REFINABLE and not component.refined
+                           and frame.stamp - component.since >= self.settings.classification_window)
+                    if due:
+                        kind = kind or self._name_actuator_fault(w, frame, component)
+                    if due and kind.value in REFINABLE:
                         component.refined = True
                     else:
                         kind = FaultKind(component.fault)
+                elif kind is None:
+                    kind = self._name_actuator_fault(w, frame, component)
                 detail = (f'|r|/u = {z[torque_index][w]:.1f} (torque), '
                           f'{z[FAMILIES.index("command")][w]:.1f} (command)')
                 event = self._transition(name, ERROR, kind.value, frame.stamp, residuals, detail)

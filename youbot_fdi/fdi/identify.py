@@ -8,8 +8,8 @@
 2. **The report's friction sweep** (Fig. 5.10): the open-loop model driven by the measured currents
    for D on a grid, RMSE against the measured speeds.
 3. **Firmware PI gains and input delay** (velocity-mode recordings): the command-path prediction
-   fitted to the measured speeds: Nelder-Mead on log gains, the delay on a 2.5 ms grid (the
-   prediction is not smooth in it), then the gains again at that delay. The FDI predicts with the
+   fitted to the measured speeds: the delay on a 2.5 ms grid (the prediction is not smooth in it)
+   and Nelder-Mead on log gains, alternated (a slower loop mimics a late one). The FDI predicts with the
    delay (``input_delay``).
 4. **Fit quality**: NRMSE per wheel (RMSE / range of the measured speed) of the current-driven and
    the command-driven predictions, to test the report's "< 1 %" claim.
@@ -18,6 +18,7 @@
    times a safety factor. The thresholds use them.
 """
 from dataclasses import dataclass, replace
+import math
 
 import numpy as np
 import scipy.optimize
@@ -27,7 +28,6 @@ from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.residuals import ResidualGenerator
 from youbot_fdi.fdi.samples import CommandBatch, JointBatch
-from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
 
 SAVGOL_WINDOW = 9  # samples
@@ -38,6 +38,7 @@ SAFETY = 1.5  # noise floors = safety * what the nominal recording needs
 FLOOR_FRACTION = 0.25  # never below this fraction of the configured floor
 MIN_SAMPLES = 50
 DELAYS = np.arange(0.0, 0.0801, 0.0025)  # input-delay grid [s]
+GAIN_DELAY_ROUNDS = 2  # alternations of the PI-gain fit and the input-delay search
 SIGMA_FAMILIES = {'torque': 'torque_sigma', 'observer': 'observer_sigma', 'encoder': 'encoder_sigma'}
 
 
@@ -127,19 +128,12 @@ def fit_dynamics(arrays, model):
 
 
 def simulate_from_currents(model, arrays):
-    """Open-loop wheel speeds predicted from the measured torques (the report's §5.2.2 model)."""
-    dyn = model.dynamics
-    a_v, b_v = -dyn.mass_inverse @ dyn.friction_matrix, dyn.mass_inverse
-    predicted = np.empty_like(arrays.velocity)
-    predicted[0] = arrays.velocity[0]
-    cache = {}
-    for k in range(1, len(arrays.time)):
-        dt = round(arrays.time[k] - arrays.time[k - 1], 4)
-        if dt not in cache:
-            cache[dt] = zoh_discretize(a_v, b_v, dt)
-        phi, gamma = cache[dt]
-        applied = 0.5 * (arrays.torque[k] + arrays.torque[k - 1])
-        predicted[k] = phi @ predicted[k - 1] + gamma @ (applied - dyn.coulomb_torque(predicted[k - 1]))
+    """Open-loop wheel speeds predicted from the measured torques (the report's §5.2.2 model): the
+    residual generator's observer without its correction (Coulomb friction at the measured speed)."""
+    from youbot_fdi.fdi.settings import FdiSettings
+    batch = run_generator(model, arrays, FdiSettings(observer_time_constant=math.inf))
+    predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
+    predicted[np.searchsorted(arrays.time, batch.stamp)] = batch.velocity - batch.values['observer']
     return predicted
 
 
@@ -241,13 +235,15 @@ def identify(path, prior_model, settings, fit_gains=True):
     dynamics, info = fit_dynamics(arrays, prior_model)
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))
     firmware, delay = None, None
-    if fit_gains:
-        firmware = fit_firmware_gains(model, arrays)
-    if firmware is not None:
-        model = PlatformModel(replace(model.profile, firmware=firmware))
-        delay, delay_errors = fit_input_delay(model, arrays)
-        firmware = fit_firmware_gains(model, arrays, delay)  # again, with the delay
-        model = PlatformModel(replace(model.profile, firmware=firmware))
+    found = fit_input_delay(model, arrays) if fit_gains else None
+    if found is not None:
+        # Gains and delay trade off (a slower loop mimics a late one): alternate, from the delay.
+        for _ in range(GAIN_DELAY_ROUNDS):
+            delay = found[0]
+            firmware = fit_firmware_gains(model, arrays, delay)
+            model = PlatformModel(replace(model.profile, firmware=firmware))
+            found = fit_input_delay(model, arrays)
+        delay, delay_errors = found
         info['input_delay_grid'] = {'delay_s': [round(float(d), 4) for d in DELAYS],
                                     'mse': [float(f'{e:.4g}') for e in delay_errors]}
     sweep = friction_sweep(model, arrays)
