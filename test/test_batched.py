@@ -134,7 +134,8 @@ def test_chunks_equal_reading_message_by_message(tmp_path, model, typestore):
 
 @pytest.fixture(scope='module')
 def recordings(tmp_path_factory, model):
-    """A stuck wheel (the PI loop saturates), a runaway, a freeze, and current mode."""
+    """A stuck wheel (the PI loop saturates), friction, a runaway, a freeze, a silent module and
+    current mode."""
     _, script = load_script()
     root = tmp_path_factory.mktemp('batched')
     return {
@@ -144,6 +145,10 @@ def recordings(tmp_path_factory, model):
                                 wheel='wheel_joint_bl', fault_time=6.0).path,
         'freeze': record_drive(root / 'freeze', model, script, fault='encoder_freeze',
                                wheel='wheel_joint_fl', fault_time=5.0).path,
+        'friction': record_drive(root / 'friction', model, script, fault='friction',
+                                 wheel='wheel_joint_br', fault_time=3.0).path,
+        'silent': record_drive(root / 'silent', model, script, fault='comm_loss',
+                               wheel='wheel_joint_fr', fault_time=8.0).path,
         'effort': record_drive(root / 'effort', model, script, mode='effort', fault='torque_loss',
                                wheel='wheel_joint_br', fault_time=5.0).path,
     }
@@ -166,7 +171,7 @@ def sample_by_sample(path, model, settings):
     return frames, events
 
 
-@pytest.mark.parametrize('name', ['stuck', 'runaway', 'freeze', 'effort'])
+@pytest.mark.parametrize('name', ['stuck', 'friction', 'runaway', 'freeze', 'silent', 'effort'])
 def test_batched_replay_equals_sample_by_sample(recordings, model, name):
     _, pipeline = build_pipeline(keep_frames=True)
     stepped = []

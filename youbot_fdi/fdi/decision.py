@@ -35,6 +35,7 @@ EXCITED_TORQUE_SIGMAS = 3.0
 #: Fault types the classification window may still change after the alarm.
 REFINABLE = (FaultKind.TORQUE_LOSS.value, FaultKind.FRICTION.value, FaultKind.UNKNOWN.value)
 BASE = None  # the component of faults not tied to one wheel
+STAMP_TOLERANCE = 1e-9  # [s] rounding allowance when a time condition is turned into a row index
 ACTUATOR_CLASS = ('actuator', 'friction')
 SENSOR_CLASS = 'velocity_sensor'
 
@@ -100,6 +101,7 @@ class DecisionMaker:
         self._recent_first = 0
         self._row = -1
         self._isolation_cache = {}
+        self._used_scores = False  # the last diagnosis depended on the scores, not only the alarms
 
     def _signatures(self, residual_data):
         """fault -> (kind, wheel index, set of torque-family wheel indices, observer indices)."""
@@ -179,6 +181,7 @@ class DecisionMaker:
         sensors = self._isolation_cache[fired]
         if sensors is None:
             return {w: 'actuator' for w in fired}
+        self._used_scores = True
         observed = [w for w in sensors if self._family('observer')[w]]
         wheel = max(observed or sensors, key=lambda w: z_observer[w])
         return {wheel: SENSOR_CLASS}
@@ -214,6 +217,7 @@ class DecisionMaker:
         wheels' command paths (a wheel that misbehaves drags the base).
         """
         diagnoses = {}
+        self._used_scores = False
         sensor_faults = (FaultKind.ENCODER_FREEZE.value, FaultKind.COMM_LOSS.value)
         still_frozen = {w for w in self._active(sensor_faults)
                         if frame.frozen[w] >= self.settings.frozen_samples}
@@ -271,9 +275,11 @@ class DecisionMaker:
     def update_batch(self, batch):
         """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events.
 
-        The same as :meth:`update` frame by frame. The alarms are computed for the whole batch;
-        frames are examined one by one only from a row that can give a diagnosis until every
-        component is OK again.
+        The same as :meth:`update` frame by frame. The alarms are computed for the whole batch.
+        Frames are examined one by one only where something can change: not while every component
+        is OK and no alarm can give a diagnosis, and not while a row repeats the alarms and frozen
+        flags of a row that changed nothing (unless the diagnosis depended on the scores, or a
+        fault type is due to be refined).
         """
         rows = len(batch)
         if not rows:
@@ -281,6 +287,10 @@ class DecisionMaker:
         z = batch.scores()
         alarm = self._alarms(z > 1.0, self._excited(batch.velocity, batch.torque))
         capable = np.flatnonzero(self._can_diagnose(alarm))
+        frozen = self.settings.frozen_samples
+        flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
+                                batch.effort_frozen >= frozen], axis=1)
+        changed = np.flatnonzero(np.concatenate([[True], (flags[1:] != flags[:-1]).any(axis=1)]))
         self.samples += rows
         self._remember(batch.values['torque'], batch.torque, batch.velocity, batch.stamp)
         first = self._recent_first + len(self._recent[0]) - rows
@@ -291,11 +301,27 @@ class DecisionMaker:
                 if not len(following):
                     break
                 k = int(following[0])
+            before = self._state()
             self._row, self.alarm = first + k, alarm[k]  # the diagnosis sees the row's alarms
-            events += self._step(batch.frame(k), z[k])
+            found = self._step(batch.frame(k), z[k])
+            events += found
             k += 1
+            if not found and not self._used_scores and self._state() == before:
+                following = changed[np.searchsorted(changed, k):]
+                stop = int(following[0]) if len(following) else rows
+                due = int(np.searchsorted(batch.stamp, self._refinement_due() - STAMP_TOLERANCE))
+                k = max(k, min(stop, due))
         self._row, self.alarm = first + rows - 1, final
         return events
+
+    def _state(self):
+        return [(c.level, c.fault, c.refined) for c in self.components.values()]
+
+    def _refinement_due(self):
+        """The earliest stamp [s] at which a latched fault type is due to be refined (inf: none)."""
+        window = self.settings.classification_window
+        return min((c.since + window for c in self.components.values()
+                    if c.level == ERROR and c.fault in REFINABLE and not c.refined), default=np.inf)
 
     def _all_ok(self):
         return all(c.level == OK for c in self.components.values())
