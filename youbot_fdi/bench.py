@@ -137,11 +137,68 @@ def bench_nodes(seconds=5.0):
                         'ms', 'relay p99', np.percentile(relay_latency, 99) * 1000)]
 
 
+REPLAY_DRIVE = 30.0  # [s] of the demo script recorded for the replay case
+REPLAY_REPEATS = 3  # best of
+
+
+def bench_replay(seconds=REPLAY_DRIVE):
+    """Replay (the batched FDI) and the live path (one sample at a time) against merely decoding
+    the same recording with rosbags; best of ``REPLAY_REPEATS`` each."""
+    import tempfile
+    from pathlib import Path
+    from youbot_fdi.bag.reader import RecordingReader
+    from youbot_fdi.cli.replay import build_pipeline
+    from youbot_fdi.model import load_model
+    from youbot_fdi.model.scenario import load_script
+    from youbot_fdi.recordings import record_drive
+    model = load_model('youbot')
+    with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
+        path = record_drive(Path(tmp) / 'drive', model, load_script(duration=seconds)[1]).path
+
+        def decode():
+            with RecordingReader(path, model.wheel_names) as reader:
+                reader.decode_only()
+
+        def replay():
+            build_pipeline()[1].replay(path)
+
+        def live():
+            _, pipeline = build_pipeline()
+            generator, decision = pipeline.generator, pipeline.decision
+            with RecordingReader(path, model.wheel_names) as reader:
+                for sample in reader.samples():
+                    if hasattr(sample, 'kind'):
+                        generator.command(sample)
+                    else:
+                        frame = generator.update(sample)
+                        if frame is not None:
+                            decision.update(frame)
+
+        best = {}
+        for name, function in (('decode', decode), ('replay', replay), ('live', live)):
+            times = []
+            for _ in range(REPLAY_REPEATS):
+                started = time.perf_counter()
+                function()
+                times.append(time.perf_counter() - started)
+            best[name] = min(times)
+        with RecordingReader(path, model.wheel_names) as reader:
+            messages = reader.message_count
+            samples = sum(c.msgcount for c in reader.connections if c.topic == reader.joint_topic)
+    per_sample = 1e6 / samples  # [µs/s] per /joint_states sample (with its share of commands)
+    return [BenchResult('replay: a recording, batched', best['replay'], 's',
+                        'rosbags decode-only', best['decode'],
+                        f'{messages} messages; target <= 1.5x'),
+            BenchResult('live path: one sample at a time', best['live'] * per_sample, 'us/sample',
+                        'replay per sample', best['replay'] * per_sample,
+                        'generator + decision, as the nodes call them')]
+
+
 def run_all(progress=print):
     """Run every case; returns the results."""
     results = []
     for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can),
-                        ('nodes', bench_nodes)):
+                        ('replay', bench_replay), ('nodes', bench_nodes)):
         progress(f'running {label} ...')
         outcome = case()
         results.extend(outcome if isinstance(outcome, list) else [outcome])
