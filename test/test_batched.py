@@ -277,3 +277,13 @@ def test_batched_alarms_equal_the_sequential_latch(model, rows, seed):
         np.testing.assert_array_equal(got[k], alarm)
     np.testing.assert_array_equal(batched._above, above)
     np.testing.assert_array_equal(batched._below, below)
+
+
+def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
+    from youbot_fdi.bench import bench_replay
+    replay, live = bench_replay(seconds=2.0)
+    assert replay.baseline_name == 'rosbags decode-only' and 'messages' in replay.note
+    samples = 2.0 / 0.01  # the drive at the shim's 100 Hz
+    assert live.baseline == pytest.approx(replay.value * 1e6 / samples, rel=0.05)  # µs per sample
+    for result in (replay, live):
+        assert result.value > 0 and result.baseline > 0 and math.isfinite(result.ratio)

@@ -30,6 +30,7 @@ from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
 
 OK, WARN, ERROR = 'OK', 'WARN', 'ERROR'
+TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'encoder'))
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
 EXCITED_TORQUE_SIGMAS = 3.0
 #: Fault types the classification window may still change after the alarm.
@@ -137,6 +138,12 @@ class DecisionMaker:
         is decided by the latest row that set or cleared it.
         """
         rows = len(over)
+        if rows == 1:  # the same latch, one row (the live path)
+            self._above = np.where(over[0], self._above + 1, 0)
+            self._below = np.where(over[0], 0, self._below + excited[0])
+            self.alarm = ((self._above >= self.settings.persistence)
+                          | (self.alarm & (self._below < self.settings.release)))
+            return self.alarm[None]
         above = run_lengths(over.reshape(rows, -1), self._above.ravel()).reshape(over.shape)
         counted = np.cumsum(excited[:, None, :] & ~over, axis=0)
         at_last_over = np.maximum.accumulate(np.where(over, counted, -1), axis=0)
@@ -151,9 +158,8 @@ class DecisionMaker:
     def _can_diagnose(self, alarm):
         """Rows of ``alarm`` (N, families, n) that give a diagnosis when every component is OK:
         a torque or encoder alarm, or fewer than half the wheels off their command path."""
-        by_family = dict(zip(FAMILIES, np.moveaxis(alarm, 1, 0)))
-        commands = np.count_nonzero(by_family['command'], axis=1)
-        return (by_family['torque'].any(axis=1) | by_family['encoder'].any(axis=1)
+        commands = np.count_nonzero(alarm[:, COMMAND], axis=1)
+        return (alarm[:, TORQUE].any(axis=1) | alarm[:, ENCODER].any(axis=1)
                 | ((commands > 0) & (commands * 2 < self.n)))
 
     def _family(self, name):

@@ -260,7 +260,12 @@ class ResidualGenerator:
     # ------------------------------------------------------------------ commands
     def command(self, sample):
         """Take a /wheel_commands sample (:class:`~youbot_fdi.fdi.samples.CommandSample`)."""
-        self._commands_in_force(np.empty(0), CommandBatch.from_samples([sample]), np.empty(0, dtype=int))
+        known = self._known_commands
+        keep = max(len(known) + 1 - MAX_PENDING_COMMANDS, 0)
+        self._known_commands = CommandBatch(
+            np.append(known.stamp[keep:], sample.stamp),
+            np.append(known.velocity_mode[keep:], sample.kind == VELOCITY),
+            np.concatenate([known.values[keep:], self.signs * np.asarray(sample.values, dtype=float)[None]]))
 
     def _commands_in_force(self, stamp, commands=None, commands_before=None):
         """(velocity mode (N,) bool, target (N, n) kinematic) at each stamp (N,).
@@ -354,6 +359,15 @@ class ResidualGenerator:
         """
         rows, n = len(dt), self.n
         steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
+        if rows == 1:  # the live path: one step, linear unless the loop saturates
+            if hold[0]:
+                return np.asarray(held, dtype=float)
+            state = self._command_state
+            loop_a, loop_b, loop_c = self._loop_step(int(steps[0]))
+            linear = loop_a @ state + loop_b @ target[0] + loop_c @ friction[0]
+            if velocity_mode[0] and self._saturated(state[None], linear[None], target)[0]:
+                return self._stepped(state, steps[0], target[0], friction[0])[None]
+            return linear[None]
         a = np.zeros((rows, 2 * n, 2 * n))
         b = np.array(held, dtype=float)
         advancing = ~hold
