@@ -4,6 +4,7 @@ Block decoding against rosbags, chunked reading against message-by-message readi
 residual generator and decision maker against their per-sample updates, the vectorised recursions
 against their loops.
 """
+from dataclasses import replace
 import math
 
 from hypothesis import given, settings, strategies as st
@@ -14,7 +15,7 @@ from youbot_fdi.bag import RecordingReader, RecordingWriter
 from youbot_fdi.bag.cdr import JointStateLayout
 from youbot_fdi.cli.replay import build_pipeline
 from youbot_fdi.fdi.decision import DecisionMaker
-from youbot_fdi.fdi.pipeline import load_residual_data
+from youbot_fdi.fdi.pipeline import FdiPipeline, load_residual_data
 from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, run_lengths
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
 from youbot_fdi.fdi.samples import SampleMapper
@@ -171,9 +172,12 @@ def sample_by_sample(path, model, settings):
     return frames, events
 
 
-@pytest.mark.parametrize('name', ['stuck', 'friction', 'runaway', 'freeze', 'silent', 'effort'])
-def test_batched_replay_equals_sample_by_sample(recordings, model, name):
-    _, pipeline = build_pipeline(keep_frames=True)
+@pytest.mark.parametrize('name, input_delay', [('stuck', 0.0), ('friction', 0.0), ('runaway', 0.0),
+                                               ('runaway', 0.03), ('freeze', 0.0), ('silent', 0.0),
+                                               ('effort', 0.02)])
+def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_delay):
+    _, pipeline = build_pipeline()
+    pipeline = FdiPipeline(model, replace(pipeline.settings, input_delay=input_delay), keep_frames=True)
     stepped = []
     original = pipeline.generator._stepped
     pipeline.generator._stepped = lambda *args: stepped.append(1) or original(*args)
@@ -195,13 +199,14 @@ def test_batched_replay_equals_sample_by_sample(recordings, model, name):
         assert stepped, 'the saturating PI loop was never stepped period by period'
 
 
-def test_gaps_and_repeated_stamps_restart_both_paths_alike(tmp_path, model):
+@pytest.mark.parametrize('gap', [100, 3 * SMALL_CHUNK])  # within a chunk, at a chunk's start
+def test_gaps_and_repeated_stamps_restart_both_paths_alike(tmp_path, model, gap):
     """Missing and repeated samples: the generator restarts at the same rows either way."""
     _, pipeline = build_pipeline(keep_frames=True)
     path = tmp_path / 'jumpy'
     rng = np.random.default_rng(9)
     stamps = 20 + 0.01 * np.arange(400)
-    stamps[100:] += 0.5  # a gap: comm_loss of the base
+    stamps[gap:] += 0.5  # a gap: comm_loss of the base
     stamps[201] = stamps[200]  # a repeated stamp
     with RecordingWriter(path, model.wheel_names) as writer:
         for stamp in stamps:

@@ -104,7 +104,7 @@ class FdiPipeline:
         if rows:
             self._last_stamp = float(seen[-1])
         events, applied = [], 0
-        bounds = [0, *gaps.tolist(), rows]
+        bounds = [0, *(g for g in gaps.tolist() if g > 0), rows]  # one segment at least
         for start, stop in zip(bounds[:-1], bounds[1:]):
             if start in gaps:
                 events += self.decision.data_stalled(float(seen[start]))
