@@ -44,7 +44,8 @@ def _series(residuals):
         return {'time': np.empty(0), 't0': 0.0}
     time = residuals.stamp
     data = {'time': time - time[0], 't0': time[0], 'velocity': residuals.velocity,
-            'torque': residuals.torque}
+            'torque': residuals.torque, 'command_speed': residuals.command_speed,
+            'velocity_mode': residuals.velocity_mode}
     for family in FAMILIES:
         data[family] = residuals.values[family]
         data[family + '_bound'] = residuals.bounds[family]
@@ -63,6 +64,9 @@ def _figures(directory, model, data, events):
     for w, ax in enumerate(np.atleast_1d(axes)):
         ax.plot(t, data['velocity'][:, w], lw=1, label='measured')
         ax.plot(t, data['velocity'][:, w] - data['observer'][:, w], lw=1, label='predicted from currents')
+        if data['velocity_mode'].any():
+            ax.plot(t, np.where(data['velocity_mode'], data['command_speed'][:, w], np.nan), lw=1,
+                    label='predicted from commands')
         ax.set_ylabel(f'{wheel_suffix(names[w])} [rad/s]')
     np.atleast_1d(axes)[0].legend(fontsize=8)
     np.atleast_1d(axes)[-1].set_xlabel('time [s]')
