@@ -260,3 +260,22 @@ def test_identify_and_replay_on_recordings_from_an_independent_simulator(tmp_pat
         assert {e.wheel for e in alarms} == {name}
         assert settled(alarms) == fault
         assert 0.0 <= alarms[0].stamp - (start + at) <= 0.12  # 50 Hz: a few samples
+
+
+def test_replay_shows_progress_on_a_terminal(recordings, tmp_path, monkeypatch):
+    import io
+    from youbot_fdi.cli import replay as replay_cli
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    terminal = Terminal()
+    monkeypatch.setattr(replay_cli, 'PROGRESS_MIN_MESSAGES', 0)
+    monkeypatch.setattr(sys, 'stderr', terminal)
+    assert main(['replay', str(recordings['nominal'].path), '--events', str(tmp_path / 'e.jsonl')]) == 0
+    shown = terminal.getvalue()
+    with RecordingReader(recordings['nominal'].path, ('wheel_joint_fl', 'wheel_joint_fr',
+                                                      'wheel_joint_bl', 'wheel_joint_br')) as reader:
+        total = reader.message_count
+    assert f'100.0% {total}/{total} messages' in shown and shown.endswith('\n')

@@ -10,7 +10,7 @@ from youbot_fdi.settings import load_settings
 
 NAME = 'replay'
 PROGRESS_MIN_MESSAGES = 20000  # show a progress bar from this many messages on
-PROGRESS_EVERY = 2000
+PROGRESS_INTERVAL = 0.2  # [s] between redraws of the progress bar
 
 
 def add_parser(subparsers):
@@ -58,9 +58,13 @@ def run(args):
             events_file.flush()
             found.append(event)
 
-        def progress(done, total):
+        drawn = [0.0]
+
+        def progress(done, total):  # called after each chunk of messages
+            now = time.perf_counter()
             if total >= PROGRESS_MIN_MESSAGES and sys.stderr.isatty() \
-                    and (done % PROGRESS_EVERY == 0 or done == total):
+                    and (now - drawn[0] >= PROGRESS_INTERVAL or done == total):
+                drawn[0] = now
                 _progress(done, total, started)
                 if done == total:
                     print(file=sys.stderr)
