@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, run_lengths
-from youbot_fdi.fdi.samples import CommandBatch, JointBatch, VELOCITY
+from youbot_fdi.fdi.samples import CommandBatch, VELOCITY
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.structure.generate import wheel_suffix
 
@@ -315,11 +315,13 @@ class ResidualGenerator:
             return None
         return self.signs * self._observer, self.signs * self._command_state[:self.n]
 
-    def _start(self, stamp, position, velocity, torque):
-        """Start from one sample (kinematic convention, [s], [rad], [rad/s], [N·m]); the rows
-        that restart later are handled in :meth:`update_batch`."""
+    def _restart(self, stamp, position, velocity, torque, velocity_mode, target):
+        """(Re)start from one sample (kinematic convention, [s], [rad], [rad/s], [N·m]; the
+        command in force): the predictions take the measurement, the PI integral the value that
+        explains the measured current."""
+        integral = self._start_integral(torque, velocity, velocity_mode, target)
         self._observer = velocity.copy()
-        self._command_state = np.concatenate([velocity, np.zeros(self.n)])
+        self._command_state = np.concatenate([velocity, integral])
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._last = (stamp, position, velocity, torque)
@@ -350,6 +352,17 @@ class ResidualGenerator:
             speed = self._phi1 @ speed + self._gamma1 @ (current * self.torque_per_amp - friction)
         return np.concatenate([speed, integral])
 
+    def _command_step(self, dt, target, friction):
+        """One sample interval ``dt`` [s] of the velocity loop from the current command-path state:
+        the exact linear map unless the loop saturates, then period by period. Returns (2n,)."""
+        steps = max(1, int(np.rint(dt / self.period)))
+        state = self._command_state
+        loop_a, loop_b, loop_c = self._loop_step(steps)
+        linear = loop_a @ state + loop_b @ target + loop_c @ friction
+        if self._saturated(state[None], linear[None], target[None])[0]:
+            return self._stepped(state, steps, target, friction)
+        return linear
+
     def _command_path(self, dt, hold, held, velocity_mode, target, friction):
         """Command-path states (N, 2n) = [predicted speed, PI integral] after each row.
 
@@ -359,19 +372,10 @@ class ResidualGenerator:
         """
         rows, n = len(dt), self.n
         steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
-        if rows == 1:  # the live path: one step, linear unless the loop saturates
-            if hold[0]:
-                return np.asarray(held, dtype=float)
-            state = self._command_state
-            loop_a, loop_b, loop_c = self._loop_step(int(steps[0]))
-            linear = loop_a @ state + loop_b @ target[0] + loop_c @ friction[0]
-            if velocity_mode[0] and self._saturated(state[None], linear[None], target)[0]:
-                return self._stepped(state, steps[0], target[0], friction[0])[None]
-            return linear[None]
         a = np.zeros((rows, 2 * n, 2 * n))
         b = np.array(held, dtype=float)
         advancing = ~hold
-        for count in (steps[advancing] if rows == 1 else np.unique(steps[advancing])):
+        for count in np.unique(steps[advancing]):
             pick = advancing & (steps == count)
             loop_a, loop_b, loop_c = self._loop_step(int(count))
             a[pick] = loop_a
@@ -399,14 +403,96 @@ class ResidualGenerator:
                     break
         return states
 
+    # ------------------------------------------------------------------ the residual formulas
+    # Shapes (n,) for one sample or (N, n) for a block; ``step`` is dt [s] (a scalar, or (N, 1)).
+    def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, phi, gamma_inv, step):
+        """(residual, bound, mean torque, mean speed, speed change, Coulomb torque) of the torque
+        family over one interval; ``phi``/``gamma_inv`` (n, n) or (N, n, n)."""
+        s = self.settings
+        mean_torque = 0.5 * (torque + prev_torque)
+        mean_speed = 0.5 * (velocity + prev_velocity)
+        change = velocity - prev_velocity
+        coulomb = self._coulomb(mean_speed)
+        explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
+        inertial = change @ self.mass_matrix.T / step
+        bound = (s.torque_sigma + s.torque_inertia_fraction * np.abs(inertial)
+                 + s.torque_current_change_fraction * np.abs(torque - prev_torque)
+                 + s.torque_friction_fraction * (np.abs(self.friction * mean_speed) + np.abs(coulomb)))
+        return mean_torque - explained, bound, mean_torque, mean_speed, change, coulomb
+
+    def _observer_bound(self, predicted):
+        s = self.settings
+        return s.observer_sigma + s.observer_speed_fraction * np.abs(predicted)
+
+    def _command_terms(self, velocity, torque, speed, before, target, velocity_mode, settling, step):
+        """(residual, bound) of the command family: ``speed`` predicted now, ``before`` at the
+        previous sample; ``velocity_mode``/``settling`` broadcast against (…, n)."""
+        s = self.settings
+        residual = np.where(settling, 0.0, np.where(velocity_mode, velocity - speed, torque - target))
+        velocity_u = (s.command_sigma + s.command_speed_fraction * np.abs(speed)
+                      + s.command_transient_fraction * np.maximum(np.abs(target - speed),
+                                                                  np.abs(target - before))
+                      + s.command_delay * np.abs(speed - before) / step)
+        effort_u = s.effort_sigma + s.effort_fraction * np.abs(target)
+        return residual, np.where(settling, 1.0, np.where(velocity_mode, velocity_u, effort_u))
+
+    def _encoder_terms(self, position, prev_position, mean_speed, change, step):
+        """(residual, bound) of the encoder family."""
+        s = self.settings
+        residual = (position - prev_position) - mean_speed * step
+        bound = (s.encoder_sigma + (s.encoder_speed_fraction * np.abs(mean_speed)
+                                    + s.encoder_change_fraction * np.abs(change)) * step
+                 + s.timing_jitter * np.abs(mean_speed))
+        return residual, bound
+
     # ------------------------------------------------------------------ the update
     def update(self, sample):
         """Residuals for one /joint_states sample (:class:`~youbot_fdi.fdi.samples.JointSample`):
-        a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder)."""
-        batch = self.update_batch(JointBatch(np.array([sample.stamp], dtype=float),
-                                             sample.position[None], sample.velocity[None],
-                                             sample.effort[None]))
-        return batch.frame(0) if len(batch) else None
+        a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder).
+
+        The live nodes' path: the computation of :meth:`update_batch` for one sample, step by step
+        (the same formula helpers; a test holds the two equal on fault recordings).
+        """
+        s, n = self.settings, self.n
+        stamp = sample.stamp
+        position, velocity, torque = (self.signs * sample.position, self.signs * sample.velocity,
+                                      self.signs * sample.effort)
+        modes, targets = self._commands_in_force(np.array([stamp]))
+        velocity_mode, target = bool(modes[0]), targets[0]
+        dt = None if self._last is None else stamp - self._last[0]
+        if dt is None or not 0.0 < dt <= s.comm_timeout:
+            self.skipped += int(dt is not None)
+            self._restart(stamp, position, velocity, torque, velocity_mode, target)
+            return None
+        _, last_position, last_velocity, last_torque = self._last
+        phi, gamma, gamma_inv = self._discrete(dt)
+        torque_r, torque_u, mean_torque, mean_speed, change, coulomb = self._torque_terms(
+            torque, last_torque, velocity, last_velocity, phi, gamma_inv, dt)
+
+        applied = mean_torque if np.isfinite(mean_torque).all() else 0.0
+        predicted = phi @ self._observer + gamma @ (applied - coulomb)
+        observer_r = velocity - predicted
+        self._observer = predicted + (dt / s.observer_time_constant) * observer_r
+
+        before = self._command_state[:n]
+        self._command_state = (self._command_step(dt, target, coulomb) if velocity_mode
+                               else np.concatenate([velocity, np.zeros(n)]))
+        speed = self._command_state[:n]
+        command_r, command_u = self._command_terms(velocity, torque, speed, before, target, velocity_mode,
+                                                   stamp - self._started < s.startup_time, dt)
+        encoder_r, encoder_u = self._encoder_terms(position, last_position, mean_speed, change, dt)
+
+        unchanged = (position == last_position) & (velocity == last_velocity)
+        self._frozen = np.where(unchanged, self._frozen + 1, 0)
+        self._effort_frozen = np.where(unchanged & (torque == last_torque), self._effort_frozen + 1, 0)
+        self._last = (stamp, position, velocity, torque)
+        return ResidualFrame(
+            stamp=stamp,
+            values={'torque': torque_r, 'observer': observer_r, 'command': command_r, 'encoder': encoder_r},
+            bounds={'torque': torque_u, 'observer': self._observer_bound(predicted), 'command': command_u,
+                    'encoder': encoder_u},
+            velocity=velocity, torque=torque, command_mode=VELOCITY if velocity_mode else 'effort',
+            command=target, frozen=self._frozen, effort_frozen=self._effort_frozen)
 
     def update_batch(self, joints, commands=None, commands_before=None):
         """Residuals of a block of /joint_states samples (:class:`~youbot_fdi.fdi.samples.JointBatch`),
@@ -427,7 +513,7 @@ class ResidualGenerator:
                                empty.astype(int), empty)
         first = self._last is None
         if first:
-            self._start(stamp[0], position[0], velocity[0], torque[0])
+            self._restart(stamp[0], position[0], velocity[0], torque[0], velocity_mode[0], target[0])
         last_stamp, last_position, last_velocity, last_torque = self._last
         prev_stamp = np.concatenate([[last_stamp], stamp[:-1]])
         prev_position, prev_velocity, prev_torque = (
@@ -441,17 +527,8 @@ class ResidualGenerator:
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]
-
-        mean_torque = 0.5 * (torque + prev_torque)
-        mean_speed = 0.5 * (velocity + prev_velocity)
-        change = velocity - prev_velocity
-        coulomb = self._coulomb(mean_speed)
-        explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
-        inertial = change @ self.mass_matrix.T / step
-        torque_r = mean_torque - explained
-        torque_u = (s.torque_sigma + s.torque_inertia_fraction * np.abs(inertial)
-                    + s.torque_current_change_fraction * np.abs(torque - prev_torque)
-                    + s.torque_friction_fraction * (np.abs(self.friction * mean_speed) + np.abs(coulomb)))
+        torque_r, torque_u, mean_torque, mean_speed, change, coulomb = self._torque_terms(
+            torque, prev_torque, velocity, prev_velocity, phi, gamma_inv, step)
 
         # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
         known = np.isfinite(mean_torque).all(axis=1, keepdims=True)
@@ -464,7 +541,7 @@ class ResidualGenerator:
         observer = affine_recursion(a, b, observer_before)
         predicted = matvec(phi, np.concatenate([observer_before[None], observer[:-1]])) + forced
         observer_r = velocity - predicted
-        observer_u = s.observer_sigma + s.observer_speed_fraction * np.abs(predicted)
+        observer_u = self._observer_bound(predicted)
 
         hold = restart | ~velocity_mode
         integral = np.zeros_like(velocity)
@@ -477,20 +554,10 @@ class ResidualGenerator:
         speed = path[:, :n]
         before = np.concatenate([command_before[None, :n], speed[:-1]])
         started = last_true_value(restart, stamp, self._started)
-        settling = (stamp - started < s.startup_time)[:, None]
-        in_velocity = velocity_mode[:, None]
-        command_r = np.where(settling, 0.0, np.where(in_velocity, velocity - speed, torque - target))
-        velocity_u = (s.command_sigma + s.command_speed_fraction * np.abs(speed)
-                      + s.command_transient_fraction * np.maximum(np.abs(target - speed),
-                                                                  np.abs(target - before))
-                      + s.command_delay * np.abs(speed - before) / step)
-        effort_u = s.effort_sigma + s.effort_fraction * np.abs(target)
-        command_u = np.where(settling, 1.0, np.where(in_velocity, velocity_u, effort_u))
-
-        encoder_r = (position - prev_position) - mean_speed * step
-        encoder_u = (s.encoder_sigma + (s.encoder_speed_fraction * np.abs(mean_speed)
-                                        + s.encoder_change_fraction * np.abs(change)) * step
-                     + s.timing_jitter * np.abs(mean_speed))
+        command_r, command_u = self._command_terms(
+            velocity, torque, speed, before, target, velocity_mode[:, None],
+            (stamp - started < s.startup_time)[:, None], step)
+        encoder_r, encoder_u = self._encoder_terms(position, prev_position, mean_speed, change, step)
 
         unchanged = (position == prev_position) & (velocity == prev_velocity)
         frozen = run_lengths(unchanged, self._frozen, restart)
