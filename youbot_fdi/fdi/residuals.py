@@ -117,6 +117,11 @@ class ResidualFrame:
 
 
 
+#: The per-row arrays of a ResidualBatch besides ``values`` and ``bounds``.
+ROW_ARRAYS = ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen', 'effort_frozen',
+              'command_speed')
+
+
 @dataclass(frozen=True)
 class ResidualBatch:
     """The residual frames of a block of samples: ``stamp`` (N,), ``velocity_mode`` (N,) bool,
@@ -147,8 +152,7 @@ class ResidualBatch:
 
     def select(self, rows):
         """The rows ``rows`` (index array, mask or slice) as a batch."""
-        pick = {f: getattr(self, f)[rows] for f in ('stamp', 'velocity', 'torque', 'velocity_mode',
-                                                   'command', 'frozen', 'effort_frozen', 'command_speed')}
+        pick = {f: getattr(self, f)[rows] for f in ROW_ARRAYS}
         return ResidualBatch(values={f: v[rows] for f, v in self.values.items()},
                              bounds={f: b[rows] for f, b in self.bounds.items()}, **pick)
 
@@ -164,9 +168,7 @@ class ResidualBatch:
     def concatenate(cls, batches):
         """One batch of several, in order."""
         batches = list(batches)
-        join = {f: np.concatenate([getattr(b, f) for b in batches])
-                for f in ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen',
-                          'effort_frozen', 'command_speed')}
+        join = {f: np.concatenate([getattr(b, f) for b in batches]) for f in ROW_ARRAYS}
         return cls(values={f: np.concatenate([b.values[f] for b in batches]) for f in FAMILIES},
                    bounds={f: np.concatenate([b.bounds[f] for b in batches]) for f in FAMILIES},
                    **join)
