@@ -33,7 +33,10 @@ CALIBRATION_DURATION = 30.0  # [s] nominal recording for identify
 SEGMENT_RANGE = (0.4, 1.8)  # [s]
 TWIST_LIMITS = (0.45, 0.35, 1.4)  # |v_x| [m/s], |v_y| [m/s], |w_z| [rad/s]
 PAUSE_PROBABILITY = 0.15
-RUNAWAY_VISIBLE_CHANGE = 1.0  # a wheel command change that makes a runaway visible [rad/s]
+#: A change of a wheel's command that makes a runaway (the old drive kept) visible, per mode:
+#: [rad/s] in velocity mode, [N·m] in current mode (about five effort noise floors).
+RUNAWAY_VISIBLE_CHANGE = {'velocity': 1.0, 'effort': 0.1}
+MODES = ('velocity', 'effort')
 TIMING_REPEATS = 2  # replay and decode-only timed this many times each; the best counts
 
 
@@ -103,18 +106,21 @@ def random_script(seed, duration):
     return DriveScript(tuple(segments))
 
 
-def _visible_time(model, script, wheel_index, injected_at):
-    """When a runaway injected at ``injected_at`` first shows: the wheel's command changes."""
+def _visible_time(model, script, wheel_index, injected_at, mode='velocity'):
+    """When a runaway injected at ``injected_at`` first shows: the wheel's command (speed, or in
+    current mode effort) changes by ``RUNAWAY_VISIBLE_CHANGE``."""
+    from youbot_fdi.recordings import effort_for
     kin = model.kinematics
     ends = np.cumsum([s.duration for s in script.segments])
-    commands = [kin.inverse(s.twist)[wheel_index] for s in script.segments] + [0.0]
+    speeds = [kin.inverse(s.twist) for s in script.segments] + [np.zeros(kin.n_wheels)]
+    commands = [(v if mode == 'velocity' else effort_for(model, v))[wheel_index] for v in speeds]
     current = None
     for k, end in enumerate(ends):
         if end <= injected_at:
             continue
         if current is None:
             current = commands[k]
-        if abs(commands[k + 1] - current) > RUNAWAY_VISIBLE_CHANGE:
+        if abs(commands[k + 1] - current) > RUNAWAY_VISIBLE_CHANGE[mode]:
             return float(end)
     return math.nan
 
@@ -137,8 +143,9 @@ def _timed_replay(path, params):
     return min(replay_times), min(decode_times)
 
 
-def _calibrate(variation, workdir, seed):
-    """Record a nominal drive of the plant and identify it; returns the parameter file path."""
+def _calibrate(variation, workdir, seed, mode):
+    """Record a nominal drive of the plant in ``mode`` and identify it; returns the parameter
+    file path."""
     import yaml
     from youbot_fdi.fdi.identify import identify
     from youbot_fdi.fdi.settings import FdiSettings
@@ -147,10 +154,10 @@ def _calibrate(variation, workdir, seed):
     from youbot_fdi.settings import load_settings
     prior = load_model('youbot')
     plant = true_model(prior, variation)
-    path = workdir / f'calibration_{variation.index}'
-    record_drive(path, plant, random_script(seed, CALIBRATION_DURATION), **_chain(variation))
+    path = workdir / f'calibration_{variation.index}_{mode}'
+    record_drive(path, plant, random_script(seed, CALIBRATION_DURATION), mode=mode, **_chain(variation))
     result = identify(path, prior, load_settings(FdiSettings, 'fdi'))
-    params = workdir / f'params_{variation.index}.yaml'
+    params = workdir / f'params_{variation.index}_{mode}.yaml'
     params.write_text(yaml.safe_dump(profile_to_dict(result.profile), sort_keys=False))
     return params
 
@@ -163,21 +170,21 @@ def _chain(variation):
 def _run_case(case):
     """One recording + replay; returns a result dict (runs in a worker process)."""
     from youbot_fdi.recordings import DEFAULT_START_STAMP, record_drive
-    variation, fault, wheel, seed, workdir, params = case
+    variation, mode, fault, wheel, seed, workdir, params = case
     prior = load_model('youbot')
     plant = true_model(prior, variation)
     rng = np.random.default_rng(seed)
     duration = NOMINAL_DURATION if fault is None else FAULT_DURATION
     script = random_script(seed, duration)
-    path = Path(workdir) / f'v{variation.index}_{fault or "nominal"}_{wheel or ""}_{seed}'
+    path = Path(workdir) / f'v{variation.index}_{mode}_{fault or "nominal"}_{wheel or ""}_{seed}'
     injected_at = float(rng.uniform(0.35, 0.6) * duration) if fault else math.nan
-    record_drive(path, plant, script, fault=fault, wheel=wheel, fault_time=injected_at,
+    record_drive(path, plant, script, mode=mode, fault=fault, wheel=wheel, fault_time=injected_at,
                  **_chain(variation))
     from youbot_fdi.cli.replay import build_pipeline
     events = build_pipeline(params)[1].replay(path).events
     visible = injected_at
     if fault == 'runaway':
-        visible = _visible_time(plant, script, plant.wheel_names.index(wheel), injected_at)
+        visible = _visible_time(plant, script, plant.wheel_names.index(wheel), injected_at, mode)
     onset = DEFAULT_START_STAMP + visible
     alarms = [e for e in events if e.level == 'ERROR']
     early = [e for e in alarms if fault is None or e.stamp < DEFAULT_START_STAMP + injected_at]
@@ -187,7 +194,7 @@ def _run_case(case):
     if first is not None:
         episode = [e for e in late if e.wheel == first.wheel and e.stamp - first.stamp <= 0.55]
         named = episode[-1].fault
-    return {'variation': variation.index, 'fault': fault, 'wheel': wheel,
+    return {'variation': variation.index, 'mode': mode, 'fault': fault, 'wheel': wheel,
             'fault_free_seconds': duration if fault is None else injected_at,
             'false_alarms': len(early) + (0 if first is None else
                                           len({e.wheel for e in late} - {wheel})),
@@ -198,23 +205,25 @@ def _run_case(case):
             'path': str(path), 'params': params}
 
 
-def run_fault_benchmark(variations=3, seed=0, workers=2, progress=print, workdir=None):
+def run_fault_benchmark(variations=3, seed=0, workers=2, progress=print, workdir=None, modes=MODES):
     """Run the benchmark; returns (variations, list of result dicts)."""
     plants = make_variations(variations, seed)
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
         root = Path(workdir or tmp)
         root.mkdir(parents=True, exist_ok=True)
         wheels = load_model('youbot').wheel_names
-        progress(f'calibrating {len(plants)} plants with identify ...')
+        calibrations = [(v, mode) for v in plants for mode in modes]
+        progress(f'calibrating {len(plants)} plants in {len(modes)} control modes with identify ...')
         with ProcessPoolExecutor(workers) as pool:
-            params = list(pool.map(_calibrate, plants, [root] * len(plants),
-                                   [seed + 1000 + v.index for v in plants]))
+            params = list(pool.map(_calibrate, [v for v, _ in calibrations], [root] * len(calibrations),
+                                   [seed + 1000 + v.index for v, _ in calibrations],
+                                   [mode for _, mode in calibrations]))
             cases = []
-            for v, p in zip(plants, params):
-                cases.append((v, None, None, seed + 10 * v.index, str(root), str(p)))
+            for (v, mode), p in zip(calibrations, params):
+                cases.append((v, mode, None, None, seed + 10 * v.index, str(root), str(p)))
                 for k, fault in enumerate(INJECTABLE):
                     for j, wheel in enumerate(wheels):
-                        cases.append((v, fault.value, wheel, seed + 100 * v.index + 10 * k + j,
+                        cases.append((v, mode, fault.value, wheel, seed + 100 * v.index + 10 * k + j,
                                       str(root), str(p)))
             results = []
             for n, result in enumerate(pool.map(_run_case, cases), 1):
@@ -238,15 +247,22 @@ def summarise(plants, results):
     replay = sum(r['replay_time'] for r in results)
     decode = sum(r['decode_time'] for r in results)
     lines = ['Fault benchmark (youbot-fdi bench --faults)'] + ['  ' + p.describe() for p in plants]
-    lines += ['', f'{"fault":<16}{"cases":>6}{"detected":>10}{"isolated":>10}{"named":>8}'
+    lines += ['', f'{"fault":<16}{"mode":<10}{"cases":>6}{"detected":>10}{"isolated":>10}{"named":>8}'
                   f'{"median delay":>14}{"p90 delay":>11}']
+    modes = [m for m in MODES if any(r['mode'] == m for r in results)]
     for fault in sorted({r['fault'] for r in faulty}):
-        rows = [r for r in faulty if r['fault'] == fault]
-        d = np.array([r['delay'] for r in rows if r['detected'] and r['isolated']])
-        lines.append(f'{fault:<16}{len(rows):>6}{sum(r["detected"] for r in rows):>10}'
-                     f'{sum(r["isolated"] for r in rows):>10}{sum(r["named"] for r in rows):>8}'
-                     f'{(np.median(d) * 1000 if len(d) else math.nan):>12.0f}ms'
-                     f'{(np.percentile(d, 90) * 1000 if len(d) else math.nan):>9.0f}ms')
+        for mode in modes:
+            rows = [r for r in faulty if r['fault'] == fault and r['mode'] == mode]
+            d = np.array([r['delay'] for r in rows if r['detected'] and r['isolated']])
+            lines.append(f'{fault:<16}{mode:<10}{len(rows):>6}{sum(r["detected"] for r in rows):>10}'
+                         f'{sum(r["isolated"] for r in rows):>10}{sum(r["named"] for r in rows):>8}'
+                         f'{(np.median(d) * 1000 if len(d) else math.nan):>12.0f}ms'
+                         f'{(np.percentile(d, 90) * 1000 if len(d) else math.nan):>9.0f}ms')
+    for mode in modes:
+        rows = [r for r in results if r['mode'] == mode]
+        seconds = sum(r['fault_free_seconds'] for r in rows)
+        lines.append(f'{mode} mode: false alarms {sum(r["false_alarms"] for r in rows)} in '
+                     f'{seconds:.0f} s fault-free')
     wrong = sorted({(r['fault'], r['named_as']) for r in faulty if r['detected'] and not r['named']},
                    key=str)
     lines += ['', f'detection rate      {sum(r["detected"] for r in faulty)}/{len(faulty)}',

@@ -21,14 +21,24 @@ def add_parser(subparsers):
                         help='plants in the fault benchmark, the nominal one first (default: 3)')
     parser.add_argument('--seed', type=int, default=0, help='random seed of the fault benchmark')
     parser.add_argument('--workers', type=int, default=2, help='processes (default: 2)')
+    parser.add_argument('--modes', default='velocity,effort',
+                        help='control modes of the fault benchmark, comma-separated '
+                             '(default: velocity,effort)')
     parser.set_defaults(run=run)
 
 
 def run(args):
     progress = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
     if args.faults:
-        from youbot_fdi.fault_bench import run_fault_benchmark, summarise
-        plants, results = run_fault_benchmark(args.variations, args.seed, args.workers, progress)
+        from youbot_fdi.fault_bench import MODES, run_fault_benchmark, summarise
+        modes = tuple(m.strip() for m in args.modes.split(',') if m.strip())
+        unknown = set(modes) - set(MODES)
+        if unknown or not modes:
+            print(f'youbot-fdi bench: error: --modes takes {",".join(MODES)}, got {args.modes!r}',
+                  file=sys.stderr)
+            return 2
+        plants, results = run_fault_benchmark(args.variations, args.seed, args.workers, progress,
+                                              modes=modes)
         print(summarise(plants, results))
         return 0
     print(format_results(run_all(progress=progress)))

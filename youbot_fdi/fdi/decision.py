@@ -193,7 +193,12 @@ class DecisionMaker:
         return {wheel: SENSOR_CLASS}
 
     def _name_actuator_fault(self, wheel, frame, component):
-        """stuck, torque_loss or friction for a wheel in the actuator/friction class."""
+        """stuck, torque_loss or friction for a wheel in the actuator/friction class, or
+        encoder_freeze when its readings are frozen while its current is fresh: a reading frozen
+        near standstill looks like a wheel that does not move for its torque."""
+        frozen = self.settings.frozen_samples
+        if frame.frozen[wheel] >= frozen and frame.effort_frozen[wheel] < frozen:
+            return FaultKind.ENCODER_FREEZE
         speed, torque = frame.velocity[wheel], frame.torque[wheel]
         commanded = frame.command[wheel] if frame.command_mode == 'velocity' else np.inf
         if abs(speed) < self.settings.stuck_speed and (abs(commanded) > self.settings.stuck_speed

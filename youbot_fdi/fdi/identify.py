@@ -7,9 +7,10 @@
    without rotation says nothing about J_z).
 2. **The report's friction sweep** (Fig. 5.10): the open-loop model driven by the measured currents
    for D on a grid, RMSE against the measured speeds.
-3. **Firmware PI gains and input delay** (velocity-mode recordings): the command-path prediction
+3. **Firmware PI gains and input delay.** Velocity-mode recordings: the command-path prediction
    fitted to the measured speeds: the delay on a 2.5 ms grid (the prediction is not smooth in it)
-   and Nelder-Mead on log gains, alternated (a slower loop mimics a late one). The FDI predicts with the
+   and Nelder-Mead on log gains, alternated (a slower loop mimics a late one). Current-mode
+   recordings: the delay that best matches the measured to the commanded effort. The FDI predicts with the
    delay (``input_delay``).
 4. **Fit quality**: NRMSE per wheel (RMSE / range of the measured speed) of the current-driven and
    the command-driven predictions, to test the report's "< 1 %" claim.
@@ -40,6 +41,7 @@ MIN_SAMPLES = 50
 DELAYS = np.arange(0.0, 0.0801, 0.0025)  # input-delay grid [s]
 GAIN_DELAY_ROUNDS = 2  # alternations of the PI-gain fit and the input-delay search
 SIGMA_FAMILIES = {'torque': 'torque_sigma', 'observer': 'observer_sigma', 'encoder': 'encoder_sigma'}
+EFFORT_SIGMA = 'effort_sigma'  # learned from current-mode recordings (commanded vs measured effort)
 
 
 class IdentificationError(FdiError):
@@ -160,13 +162,29 @@ def simulate_from_commands(model, arrays, input_delay=0.0):
     return predicted
 
 
+def _effort_error(model, arrays, input_delay):
+    """Mean squared difference [(N·m)²] of measured and commanded effort (current mode), the
+    commands acting ``input_delay`` [s] after their stamps."""
+    from youbot_fdi.fdi.settings import FdiSettings
+    batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
+    rows = ~batch.velocity_mode
+    return float(np.mean(batch.values['command'][rows] ** 2)) if rows.any() else 0.0
+
+
 def fit_input_delay(model, arrays, delays=DELAYS):
-    """The input delay [s] on the grid ``delays`` that best explains the measured speeds from the
-    commands, and the mean squared errors [(rad/s)²] on the grid; None without velocity commands."""
-    if not any(c.kind == 'velocity' for c in arrays.commands):
+    """The input delay [s] on the grid ``delays`` that best explains the measurements from the
+    commands: the speeds through the firmware loop (velocity commands), else the measured effort
+    (current-mode commands). Returns (delay, mean squared errors on the grid), or None without
+    commands."""
+    kinds = {c.kind for c in arrays.commands}
+    if 'velocity' in kinds:
+        errors = [np.mean((arrays.velocity - simulate_from_commands(model, arrays, d)) ** 2)
+                  for d in delays]
+    elif 'effort' in kinds:
+        errors = [_effort_error(model, arrays, d) for d in delays]
+    else:
         return None
-    errors = np.array([np.mean((arrays.velocity - simulate_from_commands(model, arrays, d)) ** 2)
-                       for d in delays])
+    errors = np.array(errors)
     return float(delays[int(np.argmin(errors))]), errors
 
 
@@ -206,13 +224,19 @@ def fit_firmware_gains(model, arrays, input_delay=0.0):
 
 
 def noise_floors(model, arrays, settings):
-    """Per residual family, the floor that keeps this (nominal) recording inside its bounds."""
+    """Per residual family, the floor that keeps this (nominal) recording inside its bounds; in
+    current mode also the command family's (``effort_sigma``: measured minus commanded effort)."""
     batch = run_generator(model, arrays, settings)
+    excess = {key: np.abs(batch.values[family]) - (batch.bounds[family] - getattr(settings, key))
+              for family, key in SIGMA_FAMILIES.items()}
+    effort_rows = ~batch.velocity_mode  # (rows still settling have residual 0: they never decide)
+    if effort_rows.any():
+        excess[EFFORT_SIGMA] = (np.abs(batch.values['command'][effort_rows])
+                                - (batch.bounds['command'][effort_rows] - settings.effort_sigma))
     floors = {}
-    for family, key in SIGMA_FAMILIES.items():
+    for key, values in excess.items():
         sigma = getattr(settings, key)
-        excess = np.abs(batch.values[family]) - (batch.bounds[family] - sigma)
-        needed = float(np.nanmax(excess, initial=0.0)) if len(batch) else 0.0
+        needed = float(np.nanmax(values, initial=0.0)) if values.size else 0.0
         floors[key] = max(SAFETY * max(needed, 0.0), FLOOR_FRACTION * sigma)
     return floors
 
@@ -236,13 +260,14 @@ def identify(path, prior_model, settings, fit_gains=True):
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))
     firmware, delay = None, None
     found = fit_input_delay(model, arrays) if fit_gains else None
-    if found is not None:
+    if found is not None and any(c.kind == 'velocity' for c in arrays.commands):
         # Gains and delay trade off (a slower loop mimics a late one): alternate, from the delay.
         for _ in range(GAIN_DELAY_ROUNDS):
             delay = found[0]
             firmware = fit_firmware_gains(model, arrays, delay)
             model = PlatformModel(replace(model.profile, firmware=firmware))
             found = fit_input_delay(model, arrays)
+    if found is not None:
         delay, delay_errors = found
         info['input_delay_grid'] = {'delay_s': [round(float(d), 4) for d in DELAYS],
                                     'mse': [float(f'{e:.4g}') for e in delay_errors]}

@@ -327,6 +327,7 @@ class ResidualGenerator:
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._last = (stamp, position, velocity, torque)
+        self._last_target = target
         self._started = stamp
 
     # ------------------------------------------------------------------ the command path
@@ -426,16 +427,20 @@ class ResidualGenerator:
         s = self.settings
         return s.observer_sigma + s.observer_speed_fraction * np.abs(predicted)
 
-    def _command_terms(self, velocity, torque, speed, before, target, velocity_mode, settling, step):
+    def _command_terms(self, velocity, torque, speed, before, target, previous_target, velocity_mode,
+                       settling, step):
         """(residual, bound) of the command family: ``speed`` predicted now, ``before`` at the
-        previous sample; ``velocity_mode``/``settling`` broadcast against (…, n)."""
+        previous sample, ``previous_target`` the command in force then; ``velocity_mode`` and
+        ``settling`` broadcast against (…, n). In current mode a command may act up to
+        ``command_delay`` later than predicted: that share of a step is allowed."""
         s = self.settings
         residual = np.where(settling, 0.0, np.where(velocity_mode, velocity - speed, torque - target))
         velocity_u = (s.command_sigma + s.command_speed_fraction * np.abs(speed)
                       + s.command_transient_fraction * np.maximum(np.abs(target - speed),
                                                                   np.abs(target - before))
                       + s.command_delay * np.abs(speed - before) / step)
-        effort_u = s.effort_sigma + s.effort_fraction * np.abs(target)
+        effort_u = (s.effort_sigma + s.effort_fraction * np.abs(target)
+                    + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
         return residual, np.where(settling, 1.0, np.where(velocity_mode, velocity_u, effort_u))
 
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
@@ -480,8 +485,10 @@ class ResidualGenerator:
         self._command_state = (self._command_step(dt, target, coulomb) if velocity_mode
                                else np.concatenate([velocity, np.zeros(n)]))
         speed = self._command_state[:n]
-        command_r, command_u = self._command_terms(velocity, torque, speed, before, target, velocity_mode,
+        command_r, command_u = self._command_terms(velocity, torque, speed, before, target,
+                                                   self._last_target, velocity_mode,
                                                    stamp - self._started < s.startup_time, dt)
+        self._last_target = target
         encoder_r, encoder_u = self._encoder_terms(position, last_position, mean_speed, change, dt)
 
         unchanged = (position == last_position) & (velocity == last_velocity)
@@ -557,7 +564,8 @@ class ResidualGenerator:
         before = np.concatenate([command_before[None, :n], speed[:-1]])
         started = last_true_value(restart, stamp, self._started)
         command_r, command_u = self._command_terms(
-            velocity, torque, speed, before, target, velocity_mode[:, None],
+            velocity, torque, speed, before, target,
+            np.concatenate([self._last_target[None], target[:-1]]), velocity_mode[:, None],
             (stamp - started < s.startup_time)[:, None], step)
         encoder_r, encoder_u = self._encoder_terms(position, prev_position, mean_speed, change, step)
 
@@ -568,6 +576,7 @@ class ResidualGenerator:
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
         self._observer, self._command_state = observer[-1], path[-1]
         self._frozen, self._effort_frozen, self._started = frozen[-1], effort_frozen[-1], started[-1]
+        self._last_target = target[-1]
         batch = self._batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u,
                             encoder_r, encoder_u, velocity, torque, velocity_mode, target, frozen,
                             effort_frozen, speed)
