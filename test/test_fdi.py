@@ -279,3 +279,45 @@ def test_replay_shows_progress_on_a_terminal(recordings, tmp_path, monkeypatch):
                                                       'wheel_joint_bl', 'wheel_joint_br')) as reader:
         total = reader.message_count
     assert f'100.0% {total}/{total} messages' in shown and shown.endswith('\n')
+
+
+def test_identify_in_current_mode_learns_the_delay_and_the_effort_floor(tmp_path, model):
+    """Current mode with 15 mA of noise: the measured effort lags the commands a cycle and is
+    noisier than the default floor. identify learns both; the nominal drive then stays quiet, and a
+    runaway (the old effort kept) is still found on its wheel."""
+    from youbot_fdi.fdi.settings import FdiSettings
+    nominal = record_drive(tmp_path / 'nominal', model, SCRIPT, mode='effort', current_noise=15.0)
+    params = tmp_path / 'params.yaml'
+    assert main(['identify', nominal.path, '--output', str(params)]) == 0
+    learned = load_profile(params).fdi
+    assert learned['effort_sigma'] > FdiSettings().effort_sigma and 0.0 < learned['input_delay'] <= 0.01
+    assert replay(nominal.path, params) == []
+    runaway = record_drive(tmp_path / 'runaway', model, SCRIPT, mode='effort', current_noise=15.0,
+                           fault='runaway', wheel='wheel_joint_fr', fault_time=1.9)
+    alarms = [e for e in replay(runaway.path, params) if e.level == 'ERROR']
+    assert alarms and alarms[0].wheel == 'wheel_joint_fr' and settled(alarms) == 'runaway'
+
+
+@pytest.mark.parametrize('readings_frozen, expected', [(True, 'encoder_freeze'), (False, 'stuck')])
+def test_a_wheel_that_reads_frozen_while_its_current_changes_is_an_encoder_freeze(model, readings_frozen,
+                                                                                expected):
+    """Both look like a wheel that does not turn for its torque; only frozen readings with a fresh
+    current tell the sensor from the wheel."""
+    from youbot_fdi.fdi.decision import DecisionMaker
+    from youbot_fdi.fdi.pipeline import load_residual_data
+    from youbot_fdi.fdi.residuals import FAMILIES, ResidualFrame
+    settings = FdiSettings()
+    decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
+    events = []
+    for k in range(settings.persistence):
+        values = {f: np.zeros(4) for f in FAMILIES}
+        values['torque'] = np.array([5 * settings.torque_sigma, 0.0, 0.0, 0.0])  # wheel fl only
+        frozen = np.array([settings.frozen_samples + k if readings_frozen else 0, 0, 0, 0])
+        frame = ResidualFrame(stamp=10.0 + 0.01 * k, values=values,
+                              bounds={f: np.ones(4) * (settings.torque_sigma if f == 'torque' else 1.0)
+                                      for f in FAMILIES},
+                              velocity=np.zeros(4), torque=np.array([0.5, 0.1, 0.1, 0.1]),
+                              command_mode='effort', command=np.array([0.5, 0.1, 0.1, 0.1]),
+                              frozen=frozen, effort_frozen=np.zeros(4, dtype=int))
+        events += decision.update(frame)
+    assert [(e.level, e.wheel, e.fault) for e in events] == [('ERROR', 'wheel_joint_fl', expected)]
