@@ -1,10 +1,12 @@
-"""The fault benchmark: every fault type on every wheel, on plants the FDI was not built for.
+"""The fault benchmark: every fault type on every wheel, in both control modes, on plants the FDI
+was not built for.
 
 Per plant variation (the first is the nominal youBot profile, the others are random): the true
 plant's mass, inertias, per-wheel viscous friction, Coulomb friction (a friction law the prior
 model does not have), firmware PI gains, measurement noise and measurement delay are drawn at
 random. As a user would, the FDI is then calibrated with ``identify`` on one nominal recording of
-that plant, and replays
+that plant in each control mode (velocity commands, or open-loop efforts in current mode), and
+replays, per mode,
 
 - a long fault-free drive with aggressive transients and rotations (false alarms per hour), and
 - one recording per fault type and wheel, the fault injected at a random moment.
