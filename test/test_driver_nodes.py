@@ -35,6 +35,15 @@ def sim():
     harness.close()
 
 
+SETTLED_STATES = 10  # the last ~0.1 s of /joint_states
+
+
+def settled(states, field):
+    """The median of ``field`` over the last states: a command published late on a loaded machine
+    lets the shim's watchdog zero one sample (it should), which must not decide the test."""
+    return np.median([getattr(s, field) for s in states[-SETTLED_STATES:]], axis=0)
+
+
 def command(harness, velocity=None, effort=None, names=NAMES):
     msg = JointState()
     msg.name = list(names)
@@ -52,8 +61,8 @@ def test_shim_drives_the_virtual_base_through_topics(sim):
     assert sim.states, 'no /joint_states'
     last = sim.states[-1]
     assert list(last.name) == NAMES
-    np.testing.assert_allclose(last.velocity, target, atol=0.02)
-    np.testing.assert_allclose(last.effort, 0.035 * target, atol=0.01)
+    np.testing.assert_allclose(settled(sim.states, 'velocity'), target, atol=0.02)
+    np.testing.assert_allclose(settled(sim.states, 'effort'), 0.035 * target, atol=0.01)
     stamps = [s.header.stamp.sec + s.header.stamp.nanosec * 1e-9 for s in sim.states[-20:]]
     assert np.all(np.diff(stamps) > 0)
     assert len(sim.states) > 100  # ~100 Hz for 2 s
@@ -65,7 +74,7 @@ def test_shim_drives_the_virtual_base_through_topics(sim):
 def test_effort_commands_and_the_watchdog(sim):
     effort = np.array([-0.05, 0.05, -0.05, 0.05])
     sim.spin_for(1.5, every=0.05, action=lambda: command(sim, effort=effort))
-    np.testing.assert_allclose(sim.states[-1].effort, effort, atol=0.003)
+    np.testing.assert_allclose(settled(sim.states, 'effort'), effort, atol=0.003)
     sim.spin_for(1.5)  # no more commands: the watchdog commands zero speed
     np.testing.assert_allclose(sim.states[-1].velocity, 0.0, atol=0.02)
 
