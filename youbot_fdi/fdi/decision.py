@@ -271,9 +271,7 @@ class DecisionMaker:
 
     def update(self, frame):
         """Process one residual frame; returns the fault events it causes (usually none)."""
-        values, bounds = frame.flat()
-        z = (np.abs(values) / bounds).reshape(len(FAMILIES), self.n)
-        z[np.isnan(z)] = 0.0  # a residual that cannot be computed (no effort recorded) is silent
+        z = frame.scores()
         alarm = self._alarms((z > 1.0)[None], self._excited(frame.velocity, frame.torque)[None])
         self.samples += 1
         self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
@@ -359,7 +357,6 @@ class DecisionMaker:
     def _step(self, frame, z):
         """Diagnose one frame with its scores ``z`` (families, n) and the alarms in ``self.alarm``."""
         diagnoses = self._diagnose(frame, z)
-        torque_index = FAMILIES.index('torque')
         events = []
         for w, name in enumerate(self.wheel_names):
             component = self.components[name]
@@ -378,8 +375,7 @@ class DecisionMaker:
                         kind = FaultKind(component.fault)
                 elif kind is None:
                     kind = self._name_actuator_fault(w, frame, component)
-                detail = (f'|r|/u = {z[torque_index][w]:.1f} (torque), '
-                          f'{z[FAMILIES.index("command")][w]:.1f} (command)')
+                detail = f'|r|/u = {z[TORQUE][w]:.1f} (torque), {z[COMMAND][w]:.1f} (command)'
                 event = self._transition(name, ERROR, kind.value, frame.stamp, residuals, detail)
             elif component.level != OK and not self._wheel_alarms(w):
                 event = self._transition(name, OK, component.fault, frame.stamp, (), 'residuals back in bounds')

@@ -10,8 +10,8 @@
 3. **Firmware PI gains and input delay.** Velocity-mode recordings: the command-path prediction
    fitted to the measured speeds: the delay on a 2.5 ms grid (the prediction is not smooth in it)
    and Nelder-Mead on log gains, alternated (a slower loop mimics a late one). Current-mode
-   recordings: the delay that best matches the measured to the commanded effort. The FDI predicts with the
-   delay (``input_delay``).
+   recordings: the delay that best matches the measured to the commanded effort. The FDI
+   predicts with the delay (``input_delay``).
 4. **Fit quality**: NRMSE per wheel (RMSE / range of the measured speed) of the current-driven and
    the command-driven predictions, to test the report's "< 1 %" claim.
 5. **Noise floors**: the residual generator run over the recording with the identified model; each
@@ -29,6 +29,7 @@ from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.residuals import ResidualGenerator
 from youbot_fdi.fdi.samples import CommandBatch, JointBatch
+from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
 
 SAVGOL_WINDOW = 9  # samples
@@ -132,7 +133,6 @@ def fit_dynamics(arrays, model):
 def simulate_from_currents(model, arrays):
     """Open-loop wheel speeds predicted from the measured torques (the report's §5.2.2 model): the
     residual generator's observer without its correction (Coulomb friction at the measured speed)."""
-    from youbot_fdi.fdi.settings import FdiSettings
     batch = run_generator(model, arrays, FdiSettings(observer_time_constant=math.inf))
     predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
     predicted[np.searchsorted(arrays.time, batch.stamp)] = batch.velocity - batch.values['observer']
@@ -155,7 +155,6 @@ def run_generator(model, arrays, settings):
 def simulate_from_commands(model, arrays, input_delay=0.0):
     """Wheel speeds predicted from the commands through the firmware loop (§5.2.3), the commands
     acting ``input_delay`` [s] after their stamps."""
-    from youbot_fdi.fdi.settings import FdiSettings
     batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
     predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
     predicted[np.searchsorted(arrays.time, batch.stamp)] = batch.command_speed
@@ -165,7 +164,6 @@ def simulate_from_commands(model, arrays, input_delay=0.0):
 def _effort_error(model, arrays, input_delay):
     """Mean squared difference [(N·m)²] of measured and commanded effort (current mode), the
     commands acting ``input_delay`` [s] after their stamps."""
-    from youbot_fdi.fdi.settings import FdiSettings
     batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
     rows = ~batch.velocity_mode
     return float(np.mean(batch.values['command'][rows] ** 2)) if rows.any() else 0.0

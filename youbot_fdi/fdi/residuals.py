@@ -47,6 +47,13 @@ DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
 MAX_PENDING_COMMANDS = 256
 
 
+def scores(values, bounds):
+    """|r| / u; 0 where a residual cannot be computed (NaN: no effort recorded), so it is silent."""
+    z = np.abs(values) / bounds
+    z[np.isnan(z)] = 0.0
+    return z
+
+
 @dataclass(frozen=True)
 class ResidualFrame:
     """Residuals of one sample; per-family arrays of shape (n,) in wheel order."""
@@ -69,6 +76,11 @@ class ResidualFrame:
         """(values, bounds) as flat arrays in :meth:`names` order."""
         return (np.concatenate([self.values[f] for f in FAMILIES]),
                 np.concatenate([self.bounds[f] for f in FAMILIES]))
+
+    def scores(self):
+        """|r| / u, shape (families, n) in FAMILIES order."""
+        return scores(np.stack([self.values[f] for f in FAMILIES]),
+                      np.stack([self.bounds[f] for f in FAMILIES]))
 
     def to_labelled(self, wheel_names):
         """(labels, values, bounds): the residuals, then the signals the decision needs.
@@ -158,11 +170,8 @@ class ResidualBatch:
 
     def scores(self):
         """|r| / u, shape (N, families, n); 0 where a residual cannot be computed (NaN)."""
-        values = np.stack([self.values[f] for f in FAMILIES], axis=1)
-        bounds = np.stack([self.bounds[f] for f in FAMILIES], axis=1)
-        z = np.abs(values) / bounds
-        z[np.isnan(z)] = 0.0
-        return z
+        return scores(np.stack([self.values[f] for f in FAMILIES], axis=1),
+                      np.stack([self.bounds[f] for f in FAMILIES], axis=1))
 
     @classmethod
     def concatenate(cls, batches):
@@ -218,8 +227,6 @@ class ResidualGenerator:
 
     def _discrete_rows(self, dt):
         """(Phi, Gamma, Gamma^-1) per row of ``dt`` (N,): three (N, n, n) arrays."""
-        if len(dt) == 1:
-            return tuple(m[None] for m in self._discrete(dt[0]))
         if np.all(dt == dt[0]):
             return tuple(np.broadcast_to(m, (len(dt),) + m.shape) for m in self._discrete(dt[0]))
         keys, inverse = np.unique(np.round(dt, DT_KEY_DECIMALS), return_inverse=True)
@@ -355,16 +362,14 @@ class ResidualGenerator:
             speed = self._phi1 @ speed + self._gamma1 @ (current * self.torque_per_amp - friction)
         return np.concatenate([speed, integral])
 
-    def _command_step(self, dt, target, friction):
-        """One sample interval ``dt`` [s] of the velocity loop from the current command-path state:
-        the exact linear map unless the loop saturates, then period by period. Returns (2n,)."""
-        steps = max(1, int(np.rint(dt / self.period)))
-        state = self._command_state
+    def _command_step(self, state, steps, target, friction):
+        """``steps`` firmware periods of the velocity loop from ``state`` (2n,): the exact linear
+        map unless the loop saturates, then period by period. Returns (new state, saturated)."""
         loop_a, loop_b, loop_c = self._loop_step(steps)
         linear = loop_a @ state + loop_b @ target + loop_c @ friction
         if self._saturated(state[None], linear[None], target[None])[0]:
-            return self._stepped(state, steps, target, friction)
-        return linear
+            return self._stepped(state, steps, target, friction), True
+        return linear, False
 
     def _command_path(self, dt, hold, held, velocity_mode, target, friction):
         """Command-path states (N, 2n) = [predicted speed, PI integral] after each row.
@@ -396,14 +401,11 @@ class ResidualGenerator:
             if k == rows:
                 break
             state = before[good]
-            while True:  # step the saturated rows one by one until the loop is linear again
-                state = states[k] = self._stepped(state, steps[k], target[k], friction[k])
+            saturated = True
+            while saturated and k < rows and saturable[k]:  # one by one until linear again
+                state, saturated = self._command_step(state, int(steps[k]), target[k], friction[k])
+                states[k] = state
                 k += 1
-                if k == rows or not saturable[k]:
-                    break
-                linear = a[k] @ state + b[k]
-                if not self._saturated(state[None], linear[None], target[k:k + 1])[0]:
-                    break
         return states
 
     # ------------------------------------------------------------------ the residual formulas
@@ -482,8 +484,9 @@ class ResidualGenerator:
         self._observer = predicted + (dt / s.observer_time_constant) * observer_r
 
         before = self._command_state[:n]
-        self._command_state = (self._command_step(dt, target, coulomb) if velocity_mode
-                               else np.concatenate([velocity, np.zeros(n)]))
+        steps = max(1, int(np.rint(dt / self.period)))
+        self._command_state = (self._command_step(self._command_state, steps, target, coulomb)[0]
+                               if velocity_mode else np.concatenate([velocity, np.zeros(n)]))
         speed = self._command_state[:n]
         command_r, command_u = self._command_terms(velocity, torque, speed, before, target,
                                                    self._last_target, velocity_mode,

@@ -59,13 +59,6 @@ class JointBatch:
         """No samples of ``n`` wheels."""
         return cls(np.empty(0), *(np.empty((0, n)) for _ in range(3)))
 
-    @classmethod
-    def from_samples(cls, samples):
-        """Stack :class:`JointSample` s."""
-        return cls(np.array([s.stamp for s in samples], dtype=float),
-                   *(np.array([getattr(s, f) for s in samples], dtype=float).reshape(len(samples), -1)
-                     for f in ('position', 'velocity', 'effort')))
-
 
 @dataclass(frozen=True)
 class CommandBatch:
