@@ -13,7 +13,7 @@ import pytest
 
 from youbot_fdi.bag import RecordingReader, RecordingWriter
 from youbot_fdi.bag.cdr import JointStateLayout
-from youbot_fdi.cli.replay import build_pipeline
+from youbot_fdi.fdi.pipeline import build_pipeline
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.pipeline import FdiPipeline, load_residual_data
 from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, run_lengths
@@ -261,31 +261,34 @@ def test_run_lengths_and_last_values_equal_their_loops(flags, carry, seed):
 
 @settings(max_examples=80, deadline=None)
 @given(rows=st.integers(1, 60), seed=st.integers(0, 2**32 - 1))
-def test_batched_alarms_equal_the_sequential_latch(model, rows, seed):
-    """persistence/release hysteresis over a block, from any state it was left in."""
+def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
+    """Evidence (CUSUM) and release hysteresis over a block, from any state it was left in,
+    equal the one-row recursion g = max(0, g + min(z, cap) - drift)."""
     from youbot_fdi.fdi.settings import FdiSettings
-    settings_ = FdiSettings(persistence=3, release=5)
+    settings_ = FdiSettings(release=5)
     rng = np.random.default_rng(seed)
     shape = (len(FAMILIES), 4)
     batched = DecisionMaker(model.wheel_names, settings_, load_residual_data())
-    batched._above = rng.integers(0, 4, size=shape)
+    batched._evidence = rng.random(shape) * 4.0
     batched._below = rng.integers(0, 6, size=shape)
     batched.alarm = rng.random(shape) < 0.5
-    above, below, alarm = batched._above.copy(), batched._below.copy(), batched.alarm.copy()
-    over = rng.random((rows, *shape)) < rng.random()
+    evidence, below, alarm = batched._evidence.copy(), batched._below.copy(), batched.alarm.copy()
+    z = rng.random((rows, *shape)) * rng.uniform(0.5, 4.0)
     excited = rng.random((rows, 4)) < 0.7
-    got = batched._alarms(over, excited)
+    got = batched._alarms(z, excited)
+    s = settings_
     for k in range(rows):
-        above = np.where(over[k], above + 1, 0)
-        below = np.where(over[k], 0, np.where(excited[k], below + 1, below))
-        alarm = np.where(above >= 3, True, np.where(below >= 5, False, alarm))
+        evidence = np.maximum(0.0, evidence + np.minimum(z[k], s.evidence_cap) - s.evidence_drift)
+        over = evidence >= s.evidence_threshold
+        below = np.where(over, 0, np.where(excited[k], below + 1, below))
+        alarm = np.where(over, True, np.where(below >= 5, False, alarm))
         np.testing.assert_array_equal(got[k], alarm)
-    np.testing.assert_array_equal(batched._above, above)
+    np.testing.assert_allclose(batched._evidence, evidence, atol=1e-9)
     np.testing.assert_array_equal(batched._below, below)
 
 
 def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
-    from youbot_fdi.bench import bench_replay
+    from youbot_fdi.bench.speed import bench_replay
     replay, live = bench_replay(seconds=2.0)
     assert replay.baseline_name == 'rosbags decode-only' and 'messages' in replay.note
     samples = 2.0 / 0.01  # the drive at the shim's 100 Hz

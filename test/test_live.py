@@ -6,7 +6,7 @@ import pytest
 pytest.importorskip('rclpy')
 
 from youbot_fdi.cli.main import main  # noqa: E402
-from youbot_fdi.cli.replay import build_pipeline  # noqa: E402
+from youbot_fdi.fdi.pipeline import build_pipeline  # noqa: E402
 from youbot_fdi.model.scenario import load_script  # noqa: E402
 from youbot_fdi.nodes.demo import DemoPlan, run_demo  # noqa: E402
 

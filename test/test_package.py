@@ -26,7 +26,7 @@ for module in sys.argv[2:]:
     importlib.import_module(module)
 """
 TMCM_MODULES = ('youbot_fdi.tmcm.tmcl', 'youbot_fdi.tmcm.process_data', 'youbot_fdi.tmcm.driver',
-                'youbot_fdi.tmcm.virtual_base', 'youbot_fdi.bench')
+                'youbot_fdi.tmcm.virtual_base', 'youbot_fdi.bench.speed')
 
 
 def import_blocked(blocked, modules):
@@ -100,7 +100,7 @@ def test_every_node_parameter_file_loads_into_its_settings():
     assert load_settings(DriverSettings, 'driver_shim').cycle_rate == 100.0
     assert load_settings(VirtualBaseSettings, 'virtual_youbot').module_ids == (17, 18, 19, 20)
     for node in ('observer', 'decision'):  # config/fdi.yaml applies to every node (/**)
-        assert load_settings(FdiSettings, node, REPO / 'config' / 'fdi.yaml').persistence == 3
+        assert load_settings(FdiSettings, node, REPO / 'config' / 'fdi.yaml').evidence_threshold == 3.0
     bridge = node_parameters(yaml.safe_load((REPO / 'config' / 'kinematics_bridge.yaml').read_text()),
                              'kinematics_bridge')
     assert set(bridge) == {'profile', 'max_wheel_speed', 'odom_frame', 'base_frame'}

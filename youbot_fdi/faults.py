@@ -14,6 +14,10 @@ class FaultKind(str, enum.Enum):
     UNKNOWN = 'unknown'  # detected, not identified
 
 
+#: Not a fault: the platform-wide friction/load condition changed (floor covering, payload, slope).
+#: Reported as a WARN event not tied to a wheel, with the factor in its detail.
+LOAD_CHANGE = 'load_change'
+
 #: Fault kinds a virtual base can inject (everything but ``unknown``).
 INJECTABLE = tuple(k for k in FaultKind if k is not FaultKind.UNKNOWN)
 

@@ -13,7 +13,7 @@ import numpy as np
 from youbot_fdi.bag.cdr import JointStateLayout
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.samples import (CommandBatch, CommandSample, JointBatch, JointSample,
-                                    SampleChunk, SampleMapper)
+                                    message_time, SampleChunk, SampleMapper)
 
 __all__ = ['CommandSample', 'JointSample', 'RecordingError', 'RecordingReader']
 
@@ -191,10 +191,11 @@ class RecordingReader:
             if decoded is None:
                 continue
             stamps, names, (position, velocity, effort), bag_times = decoded
+            stamps = message_time(stamps, bag_times)
             if is_joint:
                 found = self.mapper.joint_rows(stamps, names, position, velocity, effort)
             else:
-                found = self.mapper.command_rows(bag_times, names, velocity, effort)
+                found = self.mapper.command_rows(stamps, names, velocity, effort)
             if found is not None:
                 batch, kept = found
                 (kept_joints if is_joint else kept_commands).append((np.asarray(positions)[kept], batch))

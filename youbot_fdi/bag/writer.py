@@ -7,6 +7,7 @@ from youbot_fdi.bag.reader import (CMD_VEL, JOINT_STATE_TYPE, JOINT_STATES, NANO
                                    RecordingError, WHEEL_COMMANDS)
 
 STORAGES = ('sqlite3', 'mcap')
+SAME = object()  # a message's header stamp is its receive time unless told otherwise
 BAG_VERSION = 9  # what Jazzy's rosbag2 writes
 
 
@@ -43,6 +44,7 @@ class RecordingWriter:
         self._cmd_vel = None
 
     def _msg(self, stamp, position=(), velocity=(), effort=()):
+        stamp = stamp or 0.0  # None: no header stamp (zero)
         sec = int(stamp // 1)
         header = self._header(stamp=self._time(sec=sec, nanosec=int(round((stamp - sec) * NANOSECONDS))
                                                % 1_000_000_000), frame_id='')
@@ -55,14 +57,18 @@ class RecordingWriter:
         raw = self.typestore.serialize_cdr(msg, connection.msgtype)
         self._writer.write(connection, int(round(stamp * NANOSECONDS)), raw)
 
-    def joint_state(self, stamp, position, velocity, effort):
-        """Write a /joint_states sample (driver convention, [rad], [rad/s], [N·m]) at ``stamp`` [s]."""
-        self._write(self._joints, stamp, self._msg(stamp, position, velocity, effort))
+    def joint_state(self, stamp, position, velocity, effort, header_stamp=SAME):
+        """Write a /joint_states sample (driver convention, [rad], [rad/s], [N·m]) received at
+        ``stamp`` [s]; its header stamp is ``stamp`` unless given (None: zero, no stamp)."""
+        header = stamp if header_stamp is SAME else header_stamp
+        self._write(self._joints, stamp, self._msg(header, position, velocity, effort))
 
-    def wheel_command(self, stamp, kind, values):
-        """Write a /wheel_commands message: ``kind`` 'velocity' [rad/s] or 'effort' [N·m]."""
+    def wheel_command(self, stamp, kind, values, header_stamp=SAME):
+        """Write a /wheel_commands message: ``kind`` 'velocity' [rad/s] or 'effort' [N·m]; stamps
+        as :meth:`joint_state`."""
         fields = {'velocity': values} if kind == 'velocity' else {'effort': values}
-        self._write(self._commands, stamp, self._msg(stamp, **fields))
+        header = stamp if header_stamp is SAME else header_stamp
+        self._write(self._commands, stamp, self._msg(header, **fields))
 
     def cmd_vel(self, stamp, twist):
         """Write a /cmd_vel Twist (v_x, v_y, w_z)."""

@@ -1,7 +1,7 @@
 """``youbot-fdi bench``: the project's speed figures, as ratios against same-run baselines."""
 import sys
 
-from youbot_fdi.bench import format_results, run_all
+from youbot_fdi.bench.speed import format_results, run_all
 
 NAME = 'bench'
 
@@ -26,22 +26,52 @@ def add_parser(subparsers):
     parser.add_argument('--modes', default='velocity,effort',
                         help='control modes of the fault benchmark, comma-separated '
                              '(default: velocity,effort)')
+    parser.add_argument('--suites', default='simulated,independent,real',
+                        help='fault benchmark suites, comma-separated: simulated (the project\'s '
+                             'virtual base), independent (an independently written simulator), '
+                             'real (the Robotino recordings in shared/real_data/robotino, or '
+                             '$YOUBOT_FDI_ROBOTINO_DATA; skipped when absent) (default: all)')
     parser.set_defaults(run=run)
 
 
 def run(args):
     progress = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
     if args.faults:
-        from youbot_fdi.fault_bench import MODES, run_fault_benchmark, summarise
-        modes = tuple(m.strip() for m in args.modes.split(',') if m.strip())
-        unknown = set(modes) - set(MODES)
-        if unknown or not modes:
-            print(f'youbot-fdi bench: error: --modes takes {",".join(MODES)}, got {args.modes!r}',
-                  file=sys.stderr)
-            return 2
-        plants, results = run_fault_benchmark(args.variations, args.seed, args.workers, progress,
-                                              modes=modes)
-        print(summarise(plants, results))
-        return 0
+        return run_faults(args, progress)
     print(format_results(run_all(progress=progress)))
+    return 0
+
+
+SUITES = ('simulated', 'independent', 'real')
+
+
+def run_faults(args, progress):
+    """The fault benchmark's suites, each printed as it finishes, side by side in one format."""
+    import tempfile
+    from youbot_fdi.bench import independent, robotino
+    from youbot_fdi.bench.scoring import summarise
+    from youbot_fdi.bench.simulated import MODES, run_fault_benchmark, summarise as summarise_simulated
+    modes = tuple(m.strip() for m in args.modes.split(',') if m.strip())
+    suites = tuple(s.strip() for s in args.suites.split(',') if s.strip())
+    if set(modes) - set(MODES) or not modes or set(suites) - set(SUITES) or not suites:
+        print(f'youbot-fdi bench: error: --modes takes {",".join(MODES)} and --suites '
+              f'{",".join(SUITES)}; got {args.modes!r}, {args.suites!r}', file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as workdir:
+        if 'simulated' in suites:
+            plants, results = run_fault_benchmark(args.variations, args.seed, args.workers, progress,
+                                                  modes=modes)
+            print(summarise_simulated(plants, results), flush=True)
+        if 'independent' in suites:
+            line, results = independent.run_suite(workdir, progress, args.workers, args.seed)
+            print('\n' + summarise(f'Independent youBot simulator (both modes; {line})', results),
+                  flush=True)
+        if 'real' in suites:
+            found = robotino.run_suite(workdir, progress, args.workers)
+            if found is None:
+                print(f'\nReal data (Robotino): skipped, no data at {robotino.DEFAULT_DATA} '
+                      f'(set ${robotino.ENV_DATA})', flush=True)
+            else:
+                line, results = found
+                print('\n' + summarise(f'Real data, Festo Robotino ({line})', results), flush=True)
     return 0

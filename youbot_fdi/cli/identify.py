@@ -57,8 +57,13 @@ def run(args):
               + ', '.join(f'{v:.2%}' for v in result.nrmse_commands))
     verdict = 'holds' if np.all(result.nrmse_currents < 0.01) else 'does not hold'
     print(f'  the report\'s "error below 1 %" {verdict} for this recording')
-    print('  noise floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()
+    print('  bound floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()
                                         if k.endswith('_sigma')))
+    print(f'  bounds: the {settings.bound_quantile:.0%} quantile of |r| on the operating point, '
+          f'x{settings.bound_margin:g}; nominal samples inside: '
+          + ', '.join(f'{family} {share:.2%}' for family, share in result.coverage.items()))
+    print(f'  sample interval {1000 * result.fdi["sample_interval"]:.1f} ms (comm_loss after '
+          f'{1000 * max(settings.comm_timeout, settings.comm_timeout_intervals * result.fdi["sample_interval"]):.0f} ms without data)')
     if args.plot:
         from youbot_fdi.fdi.report import plot_friction_sweep
         plot_friction_sweep(result.sweep, Path(args.plot))

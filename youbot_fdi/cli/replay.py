@@ -4,9 +4,7 @@ import sys
 import time
 
 from youbot_fdi.bag.reader import JOINT_STATES, RecordingError, WHEEL_COMMANDS
-from youbot_fdi.fdi.pipeline import configure, FdiPipeline
-from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.settings import load_settings
+from youbot_fdi.fdi.pipeline import build_pipeline
 
 NAME = 'replay'
 PROGRESS_MIN_MESSAGES = 20000  # show a progress bar from this many messages on
@@ -29,12 +27,6 @@ def add_parser(subparsers):
     parser.add_argument('--command-topic', default=WHEEL_COMMANDS)
     parser.add_argument('--fdi-config', help='FDI settings YAML (default: config/fdi.yaml)')
     parser.set_defaults(run=run)
-
-
-def build_pipeline(params_path=None, fdi_config=None, keep_frames=False):
-    """The model and pipeline a replay uses: identified params override the defaults."""
-    model, settings = configure(load_settings(FdiSettings, 'fdi', fdi_config), params_path)
-    return model, FdiPipeline(model, settings, keep_frames=keep_frames)
 
 
 def _progress(done, total, started):

@@ -1,7 +1,11 @@
 """Decisions: residual alarms -> isolated wheel and fault type -> fault events with hysteresis.
 
-1. **Alarms.** A residual alarms when |r| > u for ``persistence`` consecutive samples and clears
-   after ``release`` samples under its bound.
+1. **Alarms.** Evidence accumulates per residual over time (a CUSUM of the scores z = |r| / u):
+   ``g_k = max(0, g_{k-1} + min(z_k, evidence_cap) - evidence_drift)``; a residual alarms while
+   ``g >= evidence_threshold`` and clears after ``release`` excited samples below it. A small
+   persistent excess is found (it adds up), a single spike is not an alarm (it is capped and
+   drains away). A position reading that repeats exactly while the wheel is commanded and measured
+   to turn is direct evidence of a frozen sensor (``frozen_samples`` in a row), at any rate.
 2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
    analysis (``config/residuals/<model>.yaml``): a fault is a candidate when every alarming torque
    residual is in its signature, and the candidates whose torque signature has the fewest silent
@@ -18,19 +22,23 @@
 4. **Events**: one per change of a component's (level, fault), stamped with the sample's header
    stamp; ``OK`` when every alarm behind a fault has cleared, counting only samples in which the
    wheel moved or carried current (a standing wheel proves nothing).
+5. **The load condition** (the residual generator's platform-wide load factor, common-mode
+   rejection): a ``WARN`` event ``load_change`` not tied to a wheel, "surface or load changed"
+   with the factor, when it departs from 1 by more than ``load_warn``; ``OK`` again below half
+   of that. It is never a wheel fault.
 """
 from dataclasses import dataclass
 import json
 
 import numpy as np
 
-from youbot_fdi.faults import FaultKind
-from youbot_fdi.fdi.recursions import run_lengths
+from youbot_fdi.faults import FaultKind, LOAD_CHANGE
 from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
 
 OK, WARN, ERROR = 'OK', 'WARN', 'ERROR'
 TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'encoder'))
+LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
 EXCITED_TORQUE_SIGMAS = 3.0
 #: Fault types the classification window may still change after the alarm.
@@ -90,8 +98,9 @@ class DecisionMaker:
         self.n = len(self.wheel_names)
         self.signatures = self._signatures(residual_data)
         shape = (len(FAMILIES), self.n)
-        self._above = np.zeros(shape, dtype=int)
+        self._evidence = np.zeros(shape)
         self._below = np.zeros(shape, dtype=int)
+        self.load_level, self.load_factor = OK, 1.0
         self.alarm = np.zeros(shape, dtype=bool)
         self.components = {w: _Component() for w in self.wheel_names}
         self.components[BASE] = _Component()
@@ -113,11 +122,14 @@ class DecisionMaker:
                 by_fault[fault].add(residual['name'])
         table = {}
         for fault, names in by_fault.items():
-            kind, _, suffix = fault.rpartition('_')
-            if suffix not in index:
+            suffix = next((w for w in self.suffixes if fault.endswith('_' + w)), None)
+            if suffix is None:
                 continue
-            torque = {index[n.split('_', 1)[1]] for n in names if n.startswith('torque_')}
-            observer = {index[n.split('_', 1)[1]] for n in names if n.startswith('observer_')}
+            kind = fault[:-len(suffix) - 1]
+            torque = {index[n.split('_', 1)[1]] for n in names
+                      if n.startswith('torque_') and n.split('_', 1)[1] in index}
+            observer = {index[n.split('_', 1)[1]] for n in names
+                        if n.startswith('observer_') and n.split('_', 1)[1] in index}
             table[fault] = (kind, index[suffix], frozenset(torque), frozenset(observer))
         return table
 
@@ -128,38 +140,74 @@ class DecisionMaker:
         return ((np.abs(velocity) > self.settings.stuck_speed)
                 | (np.abs(torque) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
 
-    def _alarms(self, over, excited):
-        """Alarm states (N, families, n) after each row of ``over`` (N, families, n) and
+    def evidence(self, z):
+        """The accumulated evidence (N, families, n) after each row of scores ``z`` (N, families,
+        n), continuing from the state before; leaves the state after the last row. The CUSUM
+        recursion ``g_k = max(0, g_{k-1} + x_k)`` in closed form: ``g_k = S_k - min(-g_{-1},
+        min_{j<=k} S_j)`` with S the running sum of x."""
+        s = self.settings
+        step = np.minimum(z, s.evidence_cap) - s.evidence_drift
+        if len(step) == 1:
+            g = np.maximum(0.0, self._evidence + step[0])[None]
+        else:
+            total = np.cumsum(step, axis=0)
+            g = total - np.minimum(-self._evidence, np.minimum.accumulate(total, axis=0))
+        self._evidence = g[-1]
+        return g
+
+    def _alarms(self, z, excited):
+        """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n) and
         ``excited`` (N, n), continuing the counters; leaves the state after the last row.
 
-        Sequentially: ``above`` counts consecutive rows over the bound, ``below`` the excited rows
-        since the last one over; an alarm is set at ``above >= persistence``, cleared at
-        ``below >= release`` (never both in one row) and otherwise kept. So the alarm after row k
-        is decided by the latest row that set or cleared it.
+        Sequentially: an alarm is set while the evidence is at the threshold, cleared once
+        ``below`` (excited rows since it last was) reaches ``release``, and otherwise kept. So the
+        alarm after row k is decided by the latest row that set or cleared it.
         """
+        over = self.evidence(z) >= self.settings.evidence_threshold
         rows = len(over)
         if rows == 1:  # the same latch, one row (the live path)
-            self._above = np.where(over[0], self._above + 1, 0)
             self._below = np.where(over[0], 0, self._below + excited[0])
-            self.alarm = ((self._above >= self.settings.persistence)
-                          | (self.alarm & (self._below < self.settings.release)))
+            self.alarm = over[0] | (self.alarm & (self._below < self.settings.release))
             return self.alarm[None]
-        above = run_lengths(over.reshape(rows, -1), self._above.ravel()).reshape(over.shape)
         counted = np.cumsum(excited[:, None, :] & ~over, axis=0)
         at_last_over = np.maximum.accumulate(np.where(over, counted, -1), axis=0)
         below = np.where(at_last_over >= 0, counted - at_last_over, self._below + counted)
         index = np.arange(rows)[:, None, None]
-        last_set = np.maximum.accumulate(np.where(above >= self.settings.persistence, index, -1), axis=0)
+        last_set = np.maximum.accumulate(np.where(over, index, -1), axis=0)
         last_clear = np.maximum.accumulate(np.where(below >= self.settings.release, index, -1), axis=0)
         alarm = np.where(last_set > last_clear, True, np.where(last_clear > last_set, False, self.alarm))
-        self._above, self._below, self.alarm = above[-1], below[-1], alarm[-1]
+        self._below, self.alarm = below[-1], alarm[-1]
         return alarm
 
-    def _can_diagnose(self, alarm):
+    def _load_events(self, stamps, factors):
+        """WARN/OK events of the load condition over rows (stamps (N,), load factors (N,))."""
+        departure = np.abs(np.asarray(factors, dtype=float) - 1.0)
+        warn = self.settings.load_warn
+        enter, leave = departure > warn, departure < LOAD_RELEASE * warn
+        events, level, k = [], self.load_level, 0
+        while k < len(departure):
+            pending = enter if level == OK else leave
+            found = np.flatnonzero(pending[k:])
+            if not len(found):
+                break
+            k += int(found[0])
+            level = WARN if level == OK else OK
+            detail = (f'surface or load changed: friction x{factors[k]:.2f} on every wheel'
+                      if level == WARN else f'load back to normal (x{factors[k]:.2f})')
+            events.append(FaultEvent(float(stamps[k]), level, BASE, LOAD_CHANGE, ('load_factor',), detail))
+            k += 1
+        self.load_level = level
+        if len(departure):
+            self.load_factor = float(factors[-1])
+        return events
+
+    def _can_diagnose(self, alarm, position_frozen):
         """Rows of ``alarm`` (N, families, n) that give a diagnosis when every component is OK:
-        a torque or encoder alarm, or fewer than half the wheels off their command path."""
+        a torque or encoder alarm, a position frozen while moving (``position_frozen`` (N, n)
+        counts), or fewer than half the wheels off their command path."""
         commands = np.count_nonzero(alarm[:, COMMAND], axis=1)
         return (alarm[:, TORQUE].any(axis=1) | alarm[:, ENCODER].any(axis=1)
+                | (position_frozen >= self.settings.frozen_samples).any(axis=1)
                 | ((commands > 0) & (commands * 2 < self.n)))
 
     def _family(self, name):
@@ -232,9 +280,11 @@ class DecisionMaker:
         sensor_faults = (FaultKind.ENCODER_FREEZE.value, FaultKind.COMM_LOSS.value)
         still_frozen = {w for w in self._active(sensor_faults)
                         if frame.frozen[w] >= self.settings.frozen_samples}
-        # A freeze shows as a position that stops following the speed (encoder_<w>); frozen
-        # readings alone prove nothing: a standing wheel reads the same every sample.
-        for w in sorted(set(np.flatnonzero(self._family('encoder'))) | still_frozen):
+        stopped = set(np.flatnonzero(frame.position_frozen >= self.settings.frozen_samples).tolist())
+        # A freeze shows as a position that stops following the speed (encoder_<w>), or repeats
+        # exactly while the wheel is commanded and measured to turn; frozen readings alone prove
+        # nothing: a standing wheel reads the same every sample.
+        for w in sorted(set(np.flatnonzero(self._family('encoder'))) | still_frozen | stopped):
             frozen_effort = frame.effort_frozen[w] >= self.settings.frozen_samples
             kind = FaultKind.COMM_LOSS if frozen_effort else FaultKind.ENCODER_FREEZE
             diagnoses[int(w)] = (kind, (f'encoder_{self.suffixes[w]}',))
@@ -255,7 +305,12 @@ class DecisionMaker:
             return diagnoses
         for w in disagreeing:
             if not fired and not faulty - {int(w)}:
-                diagnoses[int(w)] = (FaultKind.RUNAWAY, (f'command_{self.suffixes[w]}',))
+                # A wheel that stands while commanded to turn is blocked, not running away.
+                standing = (frame.command_mode == 'velocity'
+                            and abs(frame.velocity[w]) < self.settings.stuck_speed
+                            < abs(frame.command[w]))
+                kind = FaultKind.STUCK if standing else FaultKind.RUNAWAY
+                diagnoses[int(w)] = (kind, (f'command_{self.suffixes[w]}',))
         return diagnoses
 
     # ------------------------------------------------------------------ state and events
@@ -272,14 +327,15 @@ class DecisionMaker:
     def update(self, frame):
         """Process one residual frame; returns the fault events it causes (usually none)."""
         z = frame.scores()
-        alarm = self._alarms((z > 1.0)[None], self._excited(frame.velocity, frame.torque)[None])
+        alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None])
         self.samples += 1
         self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
                        np.array([frame.stamp]))
         self._row = self._recent_first + len(self._recent[0]) - 1
-        if self._all_ok() and not self._can_diagnose(alarm)[0]:
-            return []
-        return self._step(frame, z)
+        events = self._load_events([frame.stamp], [frame.load_factor])
+        if self._all_ok() and not self._can_diagnose(alarm, frame.position_frozen[None])[0]:
+            return events
+        return events + self._step(frame, z)
 
     def update_batch(self, batch):
         """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events.
@@ -294,11 +350,13 @@ class DecisionMaker:
         if not rows:
             return []
         z = batch.scores()
-        alarm = self._alarms(z > 1.0, self._excited(batch.velocity, batch.torque))
-        capable = np.flatnonzero(self._can_diagnose(alarm))
+        alarm = self._alarms(z, self._excited(batch.velocity, batch.torque))
+        capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen))
         frozen = self.settings.frozen_samples
         flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
-                                batch.effort_frozen >= frozen], axis=1)
+                                batch.effort_frozen >= frozen, batch.position_frozen >= frozen],
+                               axis=1)
+        load_events = self._load_events(batch.stamp, batch.load_factor)
         changed = np.flatnonzero(np.concatenate([[True], (flags[1:] != flags[:-1]).any(axis=1)]))
         self.samples += rows
         self._remember(batch.values['torque'], batch.torque, batch.velocity, batch.stamp)
@@ -321,6 +379,8 @@ class DecisionMaker:
                 due = int(np.searchsorted(batch.stamp, self._refinement_due() - STAMP_TOLERANCE))
                 k = max(k, min(stop, due))
         self._row, self.alarm = first + rows - 1, final
+        if load_events:  # in stamp order with the wheels' (a stable sort keeps same-row order)
+            events = sorted(load_events + events, key=lambda e: e.stamp)
         return events
 
     def _state(self):
@@ -391,8 +451,8 @@ class DecisionMaker:
     def data_stalled(self, last_stamp):
         """No /joint_states since ``last_stamp`` for longer than comm_timeout: comm_loss of the base."""
         event = self._transition(BASE, ERROR, FaultKind.COMM_LOSS.value,
-                                 last_stamp + self.settings.comm_timeout, (),
-                                 f'no /joint_states for more than {self.settings.comm_timeout:g} s')
+                                 last_stamp + self.settings.data_timeout, (),
+                                 f'no /joint_states for more than {self.settings.data_timeout:g} s')
         return [event] if event is not None else []
 
     def data_resumed(self, stamp):

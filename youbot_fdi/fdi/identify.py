@@ -14,9 +14,15 @@
    predicts with the delay (``input_delay``).
 4. **Fit quality**: NRMSE per wheel (RMSE / range of the measured speed) of the current-driven and
    the command-driven predictions, to test the report's "< 1 %" claim.
-5. **Noise floors**: the residual generator run over the recording with the identified model; each
-   residual family's floor (``*_sigma``) is what keeps the nominal recording inside its bounds,
-   times a safety factor. The thresholds use them.
+5. **Bounds** as functions of the operating point: the residual generator run over the recording
+   with the identified model; each bound's floor and weights (:data:`~youbot_fdi.fdi.residuals.
+   BOUND_TERMS`) by linear quantile regression of |r| on its features (``bound_quantile``, robust
+   to outliers: one bad sample moves a quantile by one sample), times ``bound_margin``. The
+   coverage (share of the nominal samples inside the bound) is reported per family.
+6. **Sample interval**: the median interval, so timeouts scale with the robot's rate.
+
+A recording whose effort is a magnitude only (``drive.signed_effort: false``) is signed by the
+explained torque, refitted a few times (the sign of friction and inertia, not of noise).
 """
 from dataclasses import dataclass, replace
 import math
@@ -24,10 +30,11 @@ import math
 import numpy as np
 import scipy.optimize
 import scipy.signal
+import scipy.sparse
 
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
-from youbot_fdi.fdi.residuals import ResidualGenerator
+from youbot_fdi.fdi.residuals import BOUND_TERMS, ResidualGenerator
 from youbot_fdi.fdi.samples import CommandBatch, JointBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
@@ -36,13 +43,14 @@ SAVGOL_WINDOW = 9  # samples
 SAVGOL_ORDER = 2
 PRIOR_WEIGHT = 1e-3  # relative weight of the pull towards the prior profile
 SWEEP = np.arange(0.010, 0.0451, 0.005)  # report Fig. 5.10 grid [N·m·s/rad]
-SAFETY = 1.5  # noise floors = safety * what the nominal recording needs
-FLOOR_FRACTION = 0.25  # never below this fraction of the configured floor
+FLOOR_FRACTION = 0.25  # a learned floor never goes below this fraction of the configured one
 MIN_SAMPLES = 50
-DELAYS = np.arange(0.0, 0.0801, 0.0025)  # input-delay grid [s]
+DELAY_STEP = 0.0025  # input-delay grid step [s]
+MAX_DELAY = 0.08  # [s]; the grid starts one sample interval early (commands stamped late)
+QUANTILE_ROWS = 20000  # rows the quantile regression uses at most (a random, seeded subset)
+MIN_INTEGRAL_SHARE = 0.05  # a P-only prior starts the gain fit at ki = this x kp [1/s]
+SIGN_REFITS = 3  # fits of a magnitude-only effort, each signed by the previous fit
 GAIN_DELAY_ROUNDS = 2  # alternations of the PI-gain fit and the input-delay search
-SIGMA_FAMILIES = {'torque': 'torque_sigma', 'observer': 'observer_sigma', 'encoder': 'encoder_sigma'}
-EFFORT_SIGMA = 'effort_sigma'  # learned from current-mode recordings (commanded vs measured effort)
 
 
 class IdentificationError(FdiError):
@@ -87,7 +95,8 @@ def _smooth(values, dt, deriv=0):
 
 
 def fit_dynamics(arrays, model):
-    """Least-squares (m, J_z, J_w, D, F_c); returns (DynamicParameters, fit info dict)."""
+    """Least-squares (m, J_z, J_w, D, F_c); returns (DynamicParameters, fit info dict, fitted
+    torques)."""
     if not np.all(np.isfinite(arrays.torque)):
         msg = 'the recording has no effort (measured current) on every sample; it is needed'
         raise IdentificationError(msg)
@@ -110,7 +119,18 @@ def fit_dynamics(arrays, model):
         mask[:, j] = 1.0
         columns.append((np.tanh(speed / scale) * mask).ravel())
     design = np.column_stack(columns)
-    target = torque.ravel()
+    if model.drive.signed_effort:
+        return _solve_dynamics(design, torque.ravel(), model, n)
+    signs = np.sign(speed).ravel()  # friction first; then the sign of each fit's explained torque
+    for _ in range(SIGN_REFITS):
+        params, info, fitted = _solve_dynamics(design, np.abs(torque).ravel() * signs, model, n)
+        signs = np.sign(fitted)
+    return params, info, fitted
+
+
+def _solve_dynamics(design, target, model, n):
+    """Bounded, prior-regularised least squares of ``design @ p = target``."""
+    prior = model.dynamics.parameters
     prior_values = np.array([prior.mass, prior.yaw_inertia, float(np.mean(prior.wheel_inertia)),
                              *prior.viscous_friction, *prior.coulomb_friction])
     column_scale = np.linalg.norm(design, axis=0) + 1e-12
@@ -127,7 +147,7 @@ def fit_dynamics(arrays, model):
                      wheel_inertia=(float(solution[2]),) * n,
                      viscous_friction=tuple(float(v) for v in solution[3:3 + n]),
                      coulomb_friction=tuple(float(v) for v in solution[3 + n:3 + 2 * n]))
-    return params, {'torque_fit_r_squared': float(r_squared), 'sample_period': dt}
+    return params, {'torque_fit_r_squared': float(r_squared)}, fitted
 
 
 def simulate_from_currents(model, arrays):
@@ -169,7 +189,14 @@ def _effort_error(model, arrays, input_delay):
     return float(np.mean(batch.values['command'][rows] ** 2)) if rows.any() else 0.0
 
 
-def fit_input_delay(model, arrays, delays=DELAYS):
+def delay_grid(interval):
+    """Input delays [s] to try: from one sample ``interval`` early (commands stamped after the
+    samples they produce) to ``MAX_DELAY``, every ``DELAY_STEP``."""
+    early = math.ceil(interval / DELAY_STEP) * DELAY_STEP
+    return np.round(np.arange(-early, MAX_DELAY + DELAY_STEP / 2, DELAY_STEP), 6)
+
+
+def fit_input_delay(model, arrays, delays):
     """The input delay [s] on the grid ``delays`` that best explains the measurements from the
     commands: the speeds through the firmware loop (velocity commands), else the measured effort
     (current-mode commands). Returns (delay, mean squared errors on the grid), or None without
@@ -207,7 +234,8 @@ def fit_firmware_gains(model, arrays, input_delay=0.0):
     """Velocity PI gains that make the command-path prediction match; None without velocity commands."""
     if not any(c.kind == 'velocity' for c in arrays.commands):
         return None
-    start = np.log([model.firmware.velocity_kp, model.firmware.velocity_ki])
+    kp = model.firmware.velocity_kp
+    start = np.log([kp, max(model.firmware.velocity_ki, MIN_INTEGRAL_SHARE * kp)])  # ki may be 0
 
     def cost(log_gains):
         kp, ki = np.exp(log_gains)
@@ -221,22 +249,62 @@ def fit_firmware_gains(model, arrays, input_delay=0.0):
     return replace(model.firmware, velocity_kp=float(kp), velocity_ki=float(ki))
 
 
-def noise_floors(model, arrays, settings):
-    """Per residual family, the floor that keeps this (nominal) recording inside its bounds; in
-    current mode also the command family's (``effort_sigma``: measured minus commanded effort)."""
+def quantile_fit(features, target, quantile, rows=QUANTILE_ROWS, seed=0):
+    """Non-negative weights w minimising the quantile loss of ``target - features @ w`` (linear
+    quantile regression as a linear program): about ``quantile`` of the rows end up below
+    ``features @ w``. features (N, k), target (N,); at most ``rows`` random rows are used."""
+    keep = np.isfinite(target) & np.isfinite(features).all(axis=1)
+    features, target = features[keep], target[keep]
+    if len(target) > rows:
+        pick = np.random.default_rng(seed).choice(len(target), rows, replace=False)
+        features, target = features[pick], target[pick]
+    count, k = features.shape
+    if count == 0:
+        return None
+    scale = np.maximum(np.abs(features).max(axis=0), 1e-12)  # conditioning
+    eye = scipy.sparse.identity(count, format='csr')
+    system = scipy.sparse.hstack([scipy.sparse.csr_matrix(features / scale), eye, -eye], format='csr')
+    cost = np.concatenate([np.zeros(k), np.full(count, quantile), np.full(count, 1.0 - quantile)])
+    result = scipy.optimize.linprog(cost, A_eq=system, b_eq=target, bounds=(0, None), method='highs')
+    if not result.success:
+        return None
+    return result.x[:k] / scale
+
+
+def fit_bounds(model, arrays, settings):
+    """The bounds' floors and weights learned from this (nominal) recording, and their coverage.
+
+    Per bound (:data:`~youbot_fdi.fdi.residuals.BOUND_TERMS`), the ``bound_quantile`` of |r| as a
+    non-negative linear function of its operating-point features, times ``bound_margin``; a
+    floor never below ``FLOOR_FRACTION`` of the configured one. The command bound is learned from
+    velocity-mode rows, the effort bound from current-mode rows (after their command-step
+    allowance). Returns ({setting: value}, {family: share of nominal rows inside the bound}).
+    """
     batch = run_generator(model, arrays, settings)
-    excess = {key: np.abs(batch.values[family]) - (batch.bounds[family] - getattr(settings, key))
-              for family, key in SIGMA_FAMILIES.items()}
-    effort_rows = ~batch.velocity_mode  # (rows still settling have residual 0: they never decide)
-    if effort_rows.any():
-        excess[EFFORT_SIGMA] = (np.abs(batch.values['command'][effort_rows])
-                                - (batch.bounds['command'][effort_rows] - settings.effort_sigma))
-    floors = {}
-    for key, values in excess.items():
-        sigma = getattr(settings, key)
-        needed = float(np.nanmax(values, initial=0.0)) if values.size else 0.0
-        floors[key] = max(SAFETY * max(needed, 0.0), FLOOR_FRACTION * sigma)
-    return floors
+    velocity_rows = batch.velocity_mode & ~np.all((batch.values['command'] == 0.0)
+                                                  & (batch.bounds['command'] == 1.0), axis=1)
+    residual = {family: np.abs(batch.values[family]) for family in ('torque', 'observer', 'encoder')}
+    residual['command'] = np.where(velocity_rows[:, None], np.abs(batch.values['command']), np.nan)
+    generator = ResidualGenerator(model, settings)
+    allowance = batch.bounds['command'] - generator.bound('effort', batch.features['effort'])
+    effort_rows = ~batch.velocity_mode
+    residual['effort'] = np.where(effort_rows[:, None], np.abs(batch.values['command']) - allowance, np.nan)
+    learned, coverage = {}, {}
+    for family, names in BOUND_TERMS.items():
+        features = batch.features[family]
+        target = residual[family]
+        rows = np.isfinite(target).all(axis=1)
+        if rows.sum() < MIN_SAMPLES:
+            continue
+        weights = quantile_fit(features[rows].reshape(-1, len(names)), target[rows].ravel(),
+                               settings.bound_quantile)
+        if weights is None:
+            continue
+        weights = weights * settings.bound_margin
+        weights[0] = max(weights[0], FLOOR_FRACTION * getattr(settings, names[0]))
+        learned.update({name: float(w) for name, w in zip(names, weights)})
+        coverage[family] = float(np.mean(target[rows] <= features[rows] @ weights))
+    return learned, coverage
 
 
 @dataclass(frozen=True)
@@ -247,35 +315,41 @@ class IdentificationResult:
     nrmse_currents: np.ndarray  # (n,) current-driven prediction
     nrmse_commands: object  # (n,) command-driven prediction, or None
     sweep: tuple  # (values, rmse)
-    fdi: dict  # learned noise floors
+    fdi: dict  # learned FDI settings (bound floors and weights, input delay, sample interval)
     info: dict
+    coverage: dict = None  # family -> share of the nominal samples inside the learned bound
 
 
 def identify(path, prior_model, settings, fit_gains=True):
     """Identify a model from the recording at ``path``, starting from ``prior_model``."""
     arrays = read_arrays(path, prior_model)
-    dynamics, info = fit_dynamics(arrays, prior_model)
+    dynamics, info, _ = fit_dynamics(arrays, prior_model)
+    interval = float(np.median(np.diff(arrays.time)))
+    info['sample_period'] = interval
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))
     firmware, delay = None, None
-    found = fit_input_delay(model, arrays) if fit_gains else None
+    delays = delay_grid(interval)
+    found = fit_input_delay(model, arrays, delays) if fit_gains else None
     if found is not None and any(c.kind == 'velocity' for c in arrays.commands):
         # Gains and delay trade off (a slower loop mimics a late one): alternate, from the delay.
         for _ in range(GAIN_DELAY_ROUNDS):
             delay = found[0]
             firmware = fit_firmware_gains(model, arrays, delay)
             model = PlatformModel(replace(model.profile, firmware=firmware))
-            found = fit_input_delay(model, arrays)
+            found = fit_input_delay(model, arrays, delays)
     if found is not None:
         delay, delay_errors = found
-        info['input_delay_grid'] = {'delay_s': [round(float(d), 4) for d in DELAYS],
+        info['input_delay_grid'] = {'delay_s': [round(float(d), 4) for d in delays],
                                     'mse': [float(f'{e:.4g}') for e in delay_errors]}
     sweep = friction_sweep(model, arrays)
     nrmse_currents = nrmse(arrays.velocity, simulate_from_currents(model, arrays))
     nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays, delay))
                       if firmware is not None else None)
+    settings = replace(settings, sample_interval=interval)
     if delay is not None:
         settings = replace(settings, input_delay=delay)
-    fdi = noise_floors(model, arrays, settings)
+    fdi, coverage = fit_bounds(model, arrays, settings)
+    fdi['sample_interval'] = interval
     if delay is not None:
         fdi['input_delay'] = delay
     info.update({'recording': str(path), 'samples': int(len(arrays.time)),
@@ -288,7 +362,8 @@ def identify(path, prior_model, settings, fit_gains=True):
                                 else [round(float(v), 5) for v in nrmse_commands]),
         'friction_sweep': {'viscous_friction': [round(float(v), 4) for v in sweep[0]],
                            'rmse': [round(float(v), 5) for v in sweep[1]]},
+        'bound_coverage': {family: round(share, 4) for family, share in coverage.items()},
     }
     profile = replace(model.profile, name=f'{prior_model.profile.name}_identified',
                       description=f'identified from {path}', fdi=fdi, identification=identification)
-    return IdentificationResult(profile, nrmse_currents, nrmse_commands, sweep, fdi, info)
+    return IdentificationResult(profile, nrmse_currents, nrmse_commands, sweep, fdi, info, coverage)

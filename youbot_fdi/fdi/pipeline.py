@@ -16,7 +16,8 @@ from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator
 from youbot_fdi.fdi.samples import CommandBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model, load_profile
-from youbot_fdi.settings import settings_from_mapping
+from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.settings import load_settings, settings_from_mapping
 
 DEFAULT_RESIDUAL_MODEL = 'youbot'
 
@@ -33,18 +34,39 @@ def configure(settings, params_path=None):
     return load_model(params_path), settings
 
 
-def load_residual_data(path=None):
-    """The runtime residual set written by ``youbot-fdi structure --write-residuals``."""
-    path = Path(path) if path else config_dir() / 'residuals' / f'{DEFAULT_RESIDUAL_MODEL}.yaml'
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        msg = f'{path}: cannot read the residual set: {err}'
-        raise ConfigError(msg) from err
+def build_pipeline(params_path=None, fdi_config=None, keep_frames=False):
+    """The model and pipeline a replay (and a benchmark) uses: ``config/fdi.yaml`` (or
+    ``fdi_config``), overridden by an ``identify`` parameter file."""
+    model, settings = configure(load_settings(FdiSettings, 'fdi', fdi_config), params_path)
+    return model, FdiPipeline(model, settings, keep_frames=keep_frames)
+
+
+def load_residual_data(path=None, wheel_names=None):
+    """The runtime residual set written by ``youbot-fdi structure --write-residuals``: ``path``,
+    or the shipped set (``config/residuals/``) whose faults cover every wheel of ``wheel_names``
+    (the youBot's first)."""
+    if not path:
+        shipped = sorted((config_dir() / 'residuals').glob('*.yaml'),
+                         key=lambda p: p.stem != DEFAULT_RESIDUAL_MODEL)
+        path = shipped[0] if shipped else config_dir() / 'residuals' / f'{DEFAULT_RESIDUAL_MODEL}.yaml'
+        for candidate in shipped if wheel_names else ():
+            faults = set((_read_residual_file(candidate) or {}).get('faults', ()))
+            if all(f'actuator_{wheel_suffix(w)}' in faults for w in wheel_names):
+                path = candidate
+                break
+    data = _read_residual_file(Path(path))
     if not isinstance(data, dict) or 'residuals' not in data or 'faults' not in data:
         msg = f'{path}: not a residual set (needs faults and residuals)'
         raise ConfigError(msg)
     return data
+
+
+def _read_residual_file(path):
+    try:
+        return yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        msg = f'{path}: cannot read the residual set: {err}'
+        raise ConfigError(msg) from err
 
 
 @dataclass(frozen=True)
@@ -76,7 +98,8 @@ class FdiPipeline:
     def __init__(self, model, settings=FdiSettings(), residual_data=None, keep_frames=False):
         self.model = model
         self.settings = settings
-        residual_data = residual_data or load_residual_data(settings.residual_file or None)
+        residual_data = residual_data or load_residual_data(settings.residual_file or None,
+                                                            model.wheel_names)
         self.generator = ResidualGenerator(model, settings)
         self.decision = DecisionMaker(model.wheel_names, settings, residual_data)
         self._kept = [] if keep_frames else None
@@ -92,7 +115,7 @@ class FdiPipeline:
     def feed(self, chunk):
         """A chunk of samples; returns the fault events it causes, in order.
 
-        A gap in /joint_states longer than ``comm_timeout`` is the base's comm_loss (raised at the
+        A gap in /joint_states longer than ``data_timeout`` is the base's comm_loss (raised at the
         gap, cleared by the sample after it).
         """
         joints, commands, before = chunk.joints, chunk.commands, chunk.commands_before
@@ -100,9 +123,15 @@ class FdiPipeline:
         seen = np.maximum.accumulate(np.concatenate([[-np.inf if self._last_stamp is None
                                                       else self._last_stamp], joints.stamp]))
         gaps = np.flatnonzero(np.isfinite(seen[:-1])
-                              & (joints.stamp - seen[:-1] > self.settings.comm_timeout))
+                              & (joints.stamp - seen[:-1] > self.settings.data_timeout))
         if rows:
             self._last_stamp = float(seen[-1])
+        stalled = []
+        if (self._last_stamp is not None and len(commands)
+                and commands.stamp.max() - self._last_stamp > self.settings.data_timeout):
+            # Commands go on, joint states do not: the base went silent (what the decision
+            # node's timer finds live); cleared by the next joint state.
+            stalled = self.decision.data_stalled(self._last_stamp)
         events, applied = [], 0
         bounds = [0, *(g for g in gaps.tolist() if g > 0), rows]  # one segment at least
         for start, stop in zip(bounds[:-1], bounds[1:]):
@@ -121,7 +150,7 @@ class FdiPipeline:
             if self._kept is not None and len(batch):
                 self._kept.append(batch)
             events += self.decision.update_batch(batch)
-        return events
+        return events + stalled
 
     def replay(self, path, joint_topic=None, command_topic=None, on_event=None, on_progress=None):
         """Feed a rosbag2 recording through the pipeline, streaming, a chunk at a time.

@@ -31,6 +31,21 @@ def affine_recursion(a, b, x0):
     return matvec(a, np.broadcast_to(x0, b.shape)) + b
 
 
+def scalar_recursion(a, b, x0):
+    """States of ``x_k = a_k x_{k-1} + b_k`` with a scalar ``a_k`` per row: a (N,), b (N, d),
+    x0 (d,); returns (N, d). Exponential smoothing with a varying step, as a prefix scan."""
+    n = len(b)
+    if n == 0:
+        return np.empty((0, len(x0)))
+    a, b = np.array(a, dtype=float), np.array(b, dtype=float)
+    shift = 1
+    while shift < n:
+        b[shift:] += a[shift:, None] * b[:-shift]
+        a[shift:] *= a[:-shift]
+        shift *= 2
+    return a[:, None] * x0 + b
+
+
 def run_lengths(flags, carry, restart=None):
     """Consecutive True ``flags`` (N, n) ending at each row, continuing ``carry`` (n,) from before
     the block; a ``restart`` row (N,) bool starts over from zero."""

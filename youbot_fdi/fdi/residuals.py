@@ -33,7 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, run_lengths
+from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, run_lengths,
+                                       scalar_recursion)
 from youbot_fdi.fdi.samples import CommandBatch, VELOCITY
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.structure.generate import wheel_suffix
@@ -41,7 +42,24 @@ from youbot_fdi.structure.generate import wheel_suffix
 FAMILIES = ('torque', 'observer', 'command', 'encoder')
 #: Signals a frame carries besides its residuals: (label prefix, attribute).
 SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
-           ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'))
+           ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'),
+           ('position_frozen', 'position_frozen'))
+#: Each bound is linear in its operating-point features: u = sum_j settings[name_j] * feature_j.
+#: Per bound, the settings that weigh its features, in feature order (``identify`` fits them by
+#: quantile regression on a nominal recording). ``effort`` is the command family in current mode.
+BOUND_TERMS = {
+    'torque': ('torque_sigma', 'torque_inertia_fraction', 'torque_current_change_fraction',
+               'torque_friction_fraction'),
+    'observer': ('observer_sigma', 'observer_speed_fraction'),
+    'command': ('command_sigma', 'command_speed_fraction', 'command_transient_fraction',
+                'command_delay'),
+    'effort': ('effort_sigma', 'effort_fraction'),
+    'encoder': ('encoder_sigma', 'encoder_speed_fraction', 'encoder_change_fraction',
+                'timing_jitter'),
+}
+#: A position reading that repeats exactly while the wheel should have turned this many encoder
+#: ticks within the interval is evidence of a frozen sensor [ticks].
+FROZEN_MIN_TICKS = 2.0
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
 #: Commands kept while no joint state arrives (a bound on memory, far above any input delay).
 MAX_PENDING_COMMANDS = 256
@@ -67,6 +85,8 @@ class ResidualFrame:
     command: np.ndarray  # in force (after the watchdog), kinematic convention
     frozen: np.ndarray  # consecutive samples with position and speed unchanged (n,) int
     effort_frozen: np.ndarray  # consecutive samples with the effort unchanged too (n,) int
+    position_frozen: np.ndarray  # consecutive samples with the position unchanged while moving (n,)
+    load_factor: float = 1.0  # the platform-wide friction/load condition (1: as identified) [-]
 
     def names(self, wheel_names):
         """Residual names in family-major order, e.g. ``torque_fl``."""
@@ -96,8 +116,8 @@ class ResidualFrame:
         for prefix, array in SIGNALS:
             labels += [f'{prefix}_{s}' for s in suffixes]
             signals.append(np.asarray(getattr(self, array), dtype=float))
-        labels.append('command_mode')
-        signals.append(np.array([1.0 if self.command_mode == 'velocity' else 0.0]))
+        labels += ['command_mode', 'load_factor']
+        signals.append(np.array([1.0 if self.command_mode == 'velocity' else 0.0, self.load_factor]))
         extra = np.concatenate(signals)
         return (labels, np.concatenate([values, extra]),
                 np.concatenate([bounds, np.full(len(extra), np.nan)]))
@@ -117,28 +137,34 @@ class ResidualFrame:
                 raise ValueError(msg) from None
 
         signals = {array: pick(prefix, values) for prefix, array in SIGNALS}
-        if 'command_mode' not in index:
-            raise ValueError('residual vector lacks command_mode')
+        for label in ('command_mode', 'load_factor'):
+            if label not in index:
+                msg = f'residual vector lacks {label}'
+                raise ValueError(msg)
         return cls(stamp=stamp,
                    values={f: pick(f, values) for f in FAMILIES},
                    bounds={f: pick(f, bounds) for f in FAMILIES},
                    velocity=signals['velocity'], torque=signals['torque'],
                    command_mode='velocity' if values[index['command_mode']] > 0.5 else 'effort',
                    command=signals['command'],
-                   frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int))
+                   frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int),
+                   position_frozen=signals['position_frozen'].astype(int),
+                   load_factor=float(values[index['load_factor']]))
 
 
 
 #: The per-row arrays of a ResidualBatch besides ``values`` and ``bounds``.
 ROW_ARRAYS = ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen', 'effort_frozen',
-              'command_speed')
+              'position_frozen', 'load_factor', 'command_speed')
 
 
 @dataclass(frozen=True)
 class ResidualBatch:
     """The residual frames of a block of samples: ``stamp`` (N,), ``velocity_mode`` (N,) bool,
     everything else (N, n) as in :class:`ResidualFrame` (``values``/``bounds`` per family), and
-    ``command_speed``: the speed the command path predicts [rad/s] (kinematic convention)."""
+    ``command_speed``: the speed the command path predicts [rad/s] (kinematic convention),
+    ``load_factor`` (N,), and ``features``: family -> (N, n, k) the bound's operating-point
+    features (:data:`BOUND_TERMS`; not kept by :meth:`concatenate`)."""
 
     stamp: np.ndarray
     values: dict
@@ -149,7 +175,10 @@ class ResidualBatch:
     command: np.ndarray
     frozen: np.ndarray
     effort_frozen: np.ndarray
+    position_frozen: np.ndarray
+    load_factor: np.ndarray
     command_speed: np.ndarray
+    features: dict = None
 
     def __len__(self):
         return len(self.stamp)
@@ -160,13 +189,15 @@ class ResidualBatch:
             stamp=float(self.stamp[k]), values={f: v[k] for f, v in self.values.items()},
             bounds={f: b[k] for f, b in self.bounds.items()}, velocity=self.velocity[k],
             torque=self.torque[k], command_mode=VELOCITY if self.velocity_mode[k] else 'effort',
-            command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k])
+            command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k],
+            position_frozen=self.position_frozen[k], load_factor=float(self.load_factor[k]))
 
     def select(self, rows):
         """The rows ``rows`` (index array, mask or slice) as a batch."""
         pick = {f: getattr(self, f)[rows] for f in ROW_ARRAYS}
         return ResidualBatch(values={f: v[rows] for f, v in self.values.items()},
-                             bounds={f: b[rows] for f, b in self.bounds.items()}, **pick)
+                             bounds={f: b[rows] for f, b in self.bounds.items()},
+                             features={f: v[rows] for f, v in (self.features or {}).items()}, **pick)
 
     def scores(self):
         """|r| / u, shape (N, families, n); 0 where a residual cannot be computed (NaN)."""
@@ -213,6 +244,11 @@ class ResidualGenerator:
         self._loop_cache = {}
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
         self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
+        self.signed_effort = drive.signed_effort
+        #: one encoder tick at the wheel [rad]
+        self.position_quantum = 2.0 * np.pi * drive.gear_ratio / drive.encoder_ticks_per_revolution
+        self._coefficients = {family: np.array([getattr(settings, name) for name in names])
+                              for family, names in BOUND_TERMS.items()}
         self._last = None
         self.skipped = 0
 
@@ -279,23 +315,23 @@ class ResidualGenerator:
     def _commands_in_force(self, stamp, commands=None, commands_before=None):
         """(velocity mode (N,) bool, target (N, n) kinematic) at each stamp (N,).
 
-        In force at a sample: the latest command received before it whose stamp is at least
-        ``input_delay`` old (the time a command takes to act), or zero speed once that is older than
-        the shim's watchdog (``command_timeout``) or when there is none. Keeps the commands that may
-        still come into force.
+        The clock rule (docs/fdi.md): every message is placed by its own stamp, never by when it
+        arrived. In force at a sample stamped t: the latest known command stamped at or before
+        ``t - input_delay`` (the time a command takes to act, negative when commands are stamped
+        after the samples they produce), or zero speed once that is older than the shim's watchdog
+        (``command_timeout``) or when there is none. Known: the commands received so far (live),
+        or the chunk's (replay). Keeps the commands that may still come into force.
         """
         known = self._known_commands
         if commands is not None and len(commands):
             known = CommandBatch(np.concatenate([known.stamp, commands.stamp]),
                                  np.concatenate([known.velocity_mode, commands.velocity_mode]),
                                  np.concatenate([known.values, self.signs * commands.values]))
-            received = len(self._known_commands) + np.asarray(commands_before, dtype=int)
-        else:
-            received = np.full(len(stamp), len(known))
+        if len(known) > 1 and np.any(np.diff(known.stamp) < 0.0):
+            order = np.argsort(known.stamp, kind='stable')
+            known = CommandBatch(known.stamp[order], known.velocity_mode[order], known.values[order])
         delay = self.settings.input_delay
-        if delay > 0.0:
-            due = np.searchsorted(known.stamp, stamp - delay, side='right')
-            received = np.minimum(received, due)
+        received = np.searchsorted(known.stamp, stamp - delay, side='right')
         index = received - 1
         pick = np.maximum(index, 0)
         none = index < 0
@@ -333,6 +369,11 @@ class ResidualGenerator:
         self._command_state = np.concatenate([velocity, integral])
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
+        self._position_frozen = np.zeros(self.n, dtype=int)
+        if not hasattr(self, '_load'):  # the load condition outlives gaps in the data
+            self._load = (np.zeros(2 * self.n), 1.0)  # smoothed [load part; friction] per wheel, factor
+        if not self.signed_effort:
+            torque = np.abs(torque) * np.sign(velocity)
         self._last = (stamp, position, velocity, torque)
         self._last_target = target
         self._started = stamp
@@ -410,51 +451,100 @@ class ResidualGenerator:
 
     # ------------------------------------------------------------------ the residual formulas
     # Shapes (n,) for one sample or (N, n) for a block; ``step`` is dt [s] (a scalar, or (N, 1)).
-    def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, phi, gamma_inv, step):
-        """(residual, bound, mean torque, mean speed, speed change, Coulomb torque) of the torque
-        family over one interval; ``phi``/``gamma_inv`` (n, n) or (N, n, n)."""
-        s = self.settings
-        mean_torque = 0.5 * (torque + prev_torque)
+    # Each returns the residual and its bound's features (..., n, k) (:data:`BOUND_TERMS`).
+    def bound(self, family, features):
+        """The bound [residual units] of ``family`` from its features (..., n, k)."""
+        return features @ self._coefficients[family]
+
+    def _explained(self, velocity, prev_velocity, phi, gamma_inv):
+        """(explained torque, its friction part, Coulomb torque, mean speed) over one interval:
+        the torque the exactly discretised dynamics need for the measured speed change."""
         mean_speed = 0.5 * (velocity + prev_velocity)
-        change = velocity - prev_velocity
         coulomb = self._coulomb(mean_speed)
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
-        inertial = change @ self.mass_matrix.T / step
-        bound = (s.torque_sigma + s.torque_inertia_fraction * np.abs(inertial)
-                 + s.torque_current_change_fraction * np.abs(torque - prev_torque)
-                 + s.torque_friction_fraction * (np.abs(self.friction * mean_speed) + np.abs(coulomb)))
-        return mean_torque - explained, bound, mean_torque, mean_speed, change, coulomb
+        return explained, self.friction * mean_speed + coulomb, coulomb, mean_speed
 
-    def _observer_bound(self, predicted):
-        s = self.settings
-        return s.observer_sigma + s.observer_speed_fraction * np.abs(predicted)
+    def _signed(self, torque, explained):
+        """The measured torque; a magnitude (``signed_effort: false``) takes the explained sign."""
+        return torque if self.signed_effort else np.abs(torque) * np.sign(explained)
+
+    def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, explained, friction, load, step):
+        """(residual, features, mean torque) of the torque family; ``load`` the load factor
+        (scalar or (N, 1)) scales the friction part of the explained torque."""
+        mean_torque = 0.5 * (torque + prev_torque)
+        inertial = (velocity - prev_velocity) @ self.mass_matrix.T / step
+        residual = mean_torque - explained - (load - 1.0) * friction
+        features = np.stack(np.broadcast_arrays(
+            1.0, np.abs(inertial), np.abs(torque - prev_torque), np.abs(load * friction)), axis=-1)
+        return residual, features, mean_torque
+
+    def _load_votes(self, mean_torque, explained, friction):
+        """Per wheel, (load part: measured minus inertial torque, friction part), zero where the
+        wheel does not vote on the load factor (friction torque under the torque floor or under
+        the inertial torque, effort unknown)."""
+        inertial = explained - friction
+        load_part = mean_torque - inertial
+        # Only in near-steady driving: where inertia dominates, the model's error does too.
+        votes = ((np.abs(friction) >= self.settings.torque_sigma) & (np.abs(inertial) <= np.abs(friction))
+                 & np.isfinite(load_part))
+        return np.where(votes, load_part, 0.0), np.where(votes, friction, 0.0)
+
+    def _load_factor(self, smoothed, previous):
+        """The platform-wide load factor from the smoothed (load part; friction) (..., 2n): the
+        part of the departure that every voting wheel shares (all heavier: the least heavy, all
+        lighter: the least light, else 1), bounded; ``previous`` where no wheel votes."""
+        n, limit = self.n, self.settings.load_factor_limit
+        load, friction = smoothed[..., :n], smoothed[..., n:]
+        votes = np.abs(friction) >= self.settings.torque_sigma
+        ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
+        heavier = np.all(np.where(votes, ratio > 1.0, True), axis=-1)
+        lighter = np.all(np.where(votes, ratio < 1.0, True), axis=-1)
+        with np.errstate(all='ignore'):
+            shared = np.where(heavier, np.nanmin(np.where(votes, ratio, np.inf), axis=-1),
+                              np.where(lighter, np.nanmax(np.where(votes, ratio, -np.inf), axis=-1), 1.0))
+        shared = np.clip(shared, 1.0 / limit, limit)
+        return shared, votes.any(axis=-1)
+
+    def _observer_features(self, predicted):
+        return np.stack(np.broadcast_arrays(1.0, np.abs(predicted)), axis=-1)
 
     def _command_terms(self, velocity, torque, speed, before, target, previous_target, velocity_mode,
                        settling, step):
         """(residual, bound) of the command family: ``speed`` predicted now, ``before`` at the
         previous sample, ``previous_target`` the command in force then; ``velocity_mode`` and
         ``settling`` broadcast against (…, n). In current mode a command may act up to
-        ``command_delay`` later than predicted: that share of a step is allowed."""
+        ``command_delay`` later than predicted: that share of a step is allowed. Also the
+        features of both bounds."""
         s = self.settings
         residual = np.where(settling, 0.0, np.where(velocity_mode, velocity - speed, torque - target))
-        velocity_u = (s.command_sigma + s.command_speed_fraction * np.abs(speed)
-                      + s.command_transient_fraction * np.maximum(np.abs(target - speed),
-                                                                  np.abs(target - before))
-                      + s.command_delay * np.abs(speed - before) / step)
-        effort_u = (s.effort_sigma + s.effort_fraction * np.abs(target)
+        velocity_f = np.stack(np.broadcast_arrays(
+            1.0, np.abs(speed), np.maximum(np.abs(target - speed), np.abs(target - before)),
+            np.abs(speed - before) / step), axis=-1)
+        effort_f = np.stack(np.broadcast_arrays(1.0, np.abs(target)), axis=-1)
+        effort_u = (self.bound('effort', effort_f)
                     + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
-        return residual, np.where(settling, 1.0, np.where(velocity_mode, velocity_u, effort_u))
+        bound = np.where(settling, 1.0, np.where(velocity_mode, self.bound('command', velocity_f), effort_u))
+        return residual, bound, velocity_f, effort_f
 
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
-        """(residual, bound) of the encoder family."""
-        s = self.settings
+        """(residual, features) of the encoder family."""
         residual = (position - prev_position) - mean_speed * step
-        bound = (s.encoder_sigma + (s.encoder_speed_fraction * np.abs(mean_speed)
-                                    + s.encoder_change_fraction * np.abs(change)) * step
-                 + s.timing_jitter * np.abs(mean_speed))
-        return residual, bound
+        features = np.stack(np.broadcast_arrays(1.0, np.abs(mean_speed) * step, np.abs(change) * step,
+                                                np.abs(mean_speed)), axis=-1)
+        return residual, features
+
+    def _moving(self, mean_speed, target, velocity_mode, step):
+        """Wheels that should have turned at least ``FROZEN_MIN_TICKS`` within the interval, by the
+        measured and (velocity mode) the commanded speed: only then is a repeated position reading
+        evidence (a lagging speed reading keeps turning for a while after the wheel stops)."""
+        speed = np.where(velocity_mode, np.minimum(np.abs(mean_speed), np.abs(target)), np.abs(mean_speed))
+        return speed * step >= FROZEN_MIN_TICKS * self.position_quantum
 
     # ------------------------------------------------------------------ the update
+    def _smoothing(self, step):
+        """Per-row weight of the past in the load factor's smoothing (``load_time_constant``)."""
+        return np.exp(-step / self.settings.load_time_constant)
+
     def update(self, sample):
         """Residuals for one /joint_states sample (:class:`~youbot_fdi.fdi.samples.JointSample`):
         a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder).
@@ -469,14 +559,23 @@ class ResidualGenerator:
         modes, targets = self._commands_in_force(np.array([stamp]))
         velocity_mode, target = bool(modes[0]), targets[0]
         dt = None if self._last is None else stamp - self._last[0]
-        if dt is None or not 0.0 < dt <= s.comm_timeout:
+        if dt is None or not 0.0 < dt <= s.data_timeout:
             self.skipped += int(dt is not None)
             self._restart(stamp, position, velocity, torque, velocity_mode, target)
             return None
         _, last_position, last_velocity, last_torque = self._last
         phi, gamma, gamma_inv = self._discrete(dt)
-        torque_r, torque_u, mean_torque, mean_speed, change, coulomb = self._torque_terms(
-            torque, last_torque, velocity, last_velocity, phi, gamma_inv, dt)
+        explained, friction, coulomb, mean_speed = self._explained(velocity, last_velocity, phi, gamma_inv)
+        torque = self._signed(torque, explained)
+        mean_torque = 0.5 * (torque + last_torque)
+        keep = self._smoothing(dt)
+        smoothed = keep * self._load[0] + (1.0 - keep) * np.concatenate(
+            self._load_votes(mean_torque, explained, friction))
+        shared, voted = self._load_factor(smoothed, self._load[1])
+        load = float(shared) if voted else self._load[1]
+        self._load = (smoothed, load)
+        torque_r, torque_f, mean_torque = self._torque_terms(
+            torque, last_torque, velocity, last_velocity, explained, friction, load, dt)
 
         applied = mean_torque if np.isfinite(mean_torque).all() else 0.0
         predicted = phi @ self._observer + gamma @ (applied - coulomb)
@@ -488,23 +587,28 @@ class ResidualGenerator:
         self._command_state = (self._command_step(self._command_state, steps, target, coulomb)[0]
                                if velocity_mode else np.concatenate([velocity, np.zeros(n)]))
         speed = self._command_state[:n]
-        command_r, command_u = self._command_terms(velocity, torque, speed, before, target,
-                                                   self._last_target, velocity_mode,
-                                                   stamp - self._started < s.startup_time, dt)
+        command_r, command_u, _, _ = self._command_terms(
+            velocity, torque, speed, before, target, self._last_target, velocity_mode,
+            stamp - self._started < s.startup_time, dt)
         self._last_target = target
-        encoder_r, encoder_u = self._encoder_terms(position, last_position, mean_speed, change, dt)
+        encoder_r, encoder_f = self._encoder_terms(position, last_position, mean_speed,
+                                                   velocity - last_velocity, dt)
 
         unchanged = (position == last_position) & (velocity == last_velocity)
         self._frozen = np.where(unchanged, self._frozen + 1, 0)
         self._effort_frozen = np.where(unchanged & (torque == last_torque), self._effort_frozen + 1, 0)
+        stopped = (position == last_position) & self._moving(mean_speed, target, velocity_mode, dt)
+        self._position_frozen = np.where(stopped, self._position_frozen + 1, 0)
         self._last = (stamp, position, velocity, torque)
         return ResidualFrame(
             stamp=stamp,
             values={'torque': torque_r, 'observer': observer_r, 'command': command_r, 'encoder': encoder_r},
-            bounds={'torque': torque_u, 'observer': self._observer_bound(predicted), 'command': command_u,
-                    'encoder': encoder_u},
+            bounds={'torque': self.bound('torque', torque_f),
+                    'observer': self.bound('observer', self._observer_features(predicted)),
+                    'command': command_u, 'encoder': self.bound('encoder', encoder_f)},
             velocity=velocity, torque=torque, command_mode=VELOCITY if velocity_mode else 'effort',
-            command=target, frozen=self._frozen, effort_frozen=self._effort_frozen)
+            command=target, frozen=self._frozen, effort_frozen=self._effort_frozen,
+            position_frozen=self._position_frozen, load_factor=load)
 
     def update_batch(self, joints, commands=None, commands_before=None):
         """Residuals of a block of /joint_states samples (:class:`~youbot_fdi.fdi.samples.JointBatch`),
@@ -512,7 +616,7 @@ class ResidualGenerator:
         before sample k; see :class:`~youbot_fdi.fdi.samples.SampleChunk`).
 
         Returns a :class:`ResidualBatch` of every sample but those that (re)start the generator:
-        the first, and any after a gap longer than ``comm_timeout`` or a stamp going backwards.
+        the first, and any after a gap longer than ``data_timeout`` or a stamp going backwards.
         """
         s, n, rows = self.settings, self.n, len(joints)
         stamp = joints.stamp
@@ -521,26 +625,36 @@ class ResidualGenerator:
         velocity_mode, target = self._commands_in_force(stamp, commands, commands_before)
         if rows == 0:
             empty = np.empty((0, n))
-            return self._batch(stamp, *(empty,) * 10, velocity_mode, target, empty.astype(int),
-                               empty.astype(int), empty)
+            return self._batch(stamp, *(empty,) * 10, velocity_mode, target, *(empty.astype(int),) * 3,
+                               np.empty(0), empty, {})
         first = self._last is None
         if first:
             self._restart(stamp[0], position[0], velocity[0], torque[0], velocity_mode[0], target[0])
         last_stamp, last_position, last_velocity, last_torque = self._last
         prev_stamp = np.concatenate([[last_stamp], stamp[:-1]])
-        prev_position, prev_velocity, prev_torque = (
-            np.concatenate([last[None], now[:-1]]) for last, now in
-            ((last_position, position), (last_velocity, velocity), (last_torque, torque)))
+        prev_position, prev_velocity = (np.concatenate([last[None], now[:-1]]) for last, now in
+                                        ((last_position, position), (last_velocity, velocity)))
         dt = stamp - prev_stamp
-        restart = ~((dt > 0.0) & (dt <= s.comm_timeout))
+        restart = ~((dt > 0.0) & (dt <= s.data_timeout))
         if first:
             restart[0] = True
         self.skipped += int(np.count_nonzero(restart)) - int(first)
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]
-        torque_r, torque_u, mean_torque, mean_speed, change, coulomb = self._torque_terms(
-            torque, prev_torque, velocity, prev_velocity, phi, gamma_inv, step)
+        explained, friction, coulomb, mean_speed = self._explained(velocity, prev_velocity, phi, gamma_inv)
+        torque = self._signed(torque, explained)
+        if not self.signed_effort and restart.any():  # as _restart signs it
+            torque[restart] = np.abs(joints.effort[restart]) * np.sign(velocity[restart])
+        prev_torque = np.concatenate([last_torque[None], torque[:-1]])
+        mean_torque = 0.5 * (torque + prev_torque)
+        keep = self._smoothing(dt)
+        smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
+            self._load_votes(mean_torque, explained, friction), axis=1), self._load[0])
+        shared, voted = self._load_factor(smoothed, self._load[1])
+        load = last_true_value(voted, shared, self._load[1])
+        torque_r, torque_f, mean_torque = self._torque_terms(
+            torque, prev_torque, velocity, prev_velocity, explained, friction, load[:, None], step)
 
         # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
         known = np.isfinite(mean_torque).all(axis=1, keepdims=True)
@@ -553,7 +667,7 @@ class ResidualGenerator:
         observer = affine_recursion(a, b, observer_before)
         predicted = matvec(phi, np.concatenate([observer_before[None], observer[:-1]])) + forced
         observer_r = velocity - predicted
-        observer_u = self._observer_bound(predicted)
+        observer_f = self._observer_features(predicted)
 
         hold = restart | ~velocity_mode
         integral = np.zeros_like(velocity)
@@ -566,30 +680,38 @@ class ResidualGenerator:
         speed = path[:, :n]
         before = np.concatenate([command_before[None, :n], speed[:-1]])
         started = last_true_value(restart, stamp, self._started)
-        command_r, command_u = self._command_terms(
+        command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, speed, before, target,
             np.concatenate([self._last_target[None], target[:-1]]), velocity_mode[:, None],
             (stamp - started < s.startup_time)[:, None], step)
-        encoder_r, encoder_u = self._encoder_terms(position, prev_position, mean_speed, change, step)
+        encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
+                                                   velocity - prev_velocity, step)
 
         unchanged = (position == prev_position) & (velocity == prev_velocity)
         frozen = run_lengths(unchanged, self._frozen, restart)
         effort_frozen = run_lengths(unchanged & (torque == prev_torque), self._effort_frozen, restart)
+        stopped = (position == prev_position) & self._moving(mean_speed, target, velocity_mode[:, None], step)
+        position_frozen = run_lengths(stopped, self._position_frozen, restart)
 
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
         self._observer, self._command_state = observer[-1], path[-1]
         self._frozen, self._effort_frozen, self._started = frozen[-1], effort_frozen[-1], started[-1]
+        self._position_frozen = position_frozen[-1]
+        self._load = (smoothed[-1], float(load[-1]))
         self._last_target = target[-1]
-        batch = self._batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u,
-                            encoder_r, encoder_u, velocity, torque, velocity_mode, target, frozen,
-                            effort_frozen, speed)
+        features = {'torque': torque_f, 'observer': observer_f, 'command': velocity_f,
+                    'effort': effort_f, 'encoder': encoder_f}
+        batch = self._batch(stamp, torque_r, self.bound('torque', torque_f), observer_r,
+                            self.bound('observer', observer_f), command_r, command_u, encoder_r,
+                            self.bound('encoder', encoder_f), velocity, torque, velocity_mode, target,
+                            frozen, effort_frozen, position_frozen, load, speed, features)
         return batch.select(~restart) if restart.any() else batch
 
     @staticmethod
     def _batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u, encoder_r,
                encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen,
-               command_speed):
+               position_frozen, load_factor, command_speed, features):
         values = dict(zip(FAMILIES, (torque_r, observer_r, command_r, encoder_r)))
         bounds = dict(zip(FAMILIES, (torque_u, observer_u, command_u, encoder_u)))
         return ResidualBatch(stamp, values, bounds, velocity, torque, velocity_mode, target, frozen,
-                             effort_frozen, command_speed)
+                             effort_frozen, position_frozen, load_factor, command_speed, features)

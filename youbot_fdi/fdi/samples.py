@@ -104,6 +104,13 @@ COUNTERS = ('joint_states', 'wheel_commands', 'skipped_nan', 'skipped_short',
             'skipped_missing_joint', 'skipped_no_values')
 
 
+def message_time(header_stamps, receive_times):
+    """The clock rule (docs/fdi.md): a message's time is its header stamp, or its receive time
+    when the header carries none (zero). The same for /joint_states and /wheel_commands, offline
+    and live. Arrays of [s]."""
+    return np.where(header_stamps > 0.0, header_stamps, receive_times)
+
+
 def as_rows(array, rows):
     """A message field (one message's sequence, or a block's (rows, m) array) as (rows, m) floats."""
     return np.asarray(array, dtype=float).reshape(rows, -1)

@@ -1,10 +1,12 @@
 """Settings of the FDI core (``config/fdi.yaml``): the uncertainty model and the decision rules.
 
-Every residual r comes with a bound u; the decision compares |r| / u with 1. The bound has a
-noise floor (``*_sigma``, learned by ``identify``) plus terms proportional to what the model is
-least sure about: inertial torque, the change of current within a sample interval, friction
-torque, speed. That keeps the thresholds quiet in transients (report §6.2) without making them
-blind in steady state.
+Every residual r comes with a bound u, linear in features of the operating point: a noise floor
+(``*_sigma``) plus weights (``*_fraction``) of what the model is least sure about: inertial
+torque, the change of current within a sample interval, friction torque, speed, command change.
+``identify`` fits the floor and the weights on a nominal recording by quantile regression (the
+``bound_quantile`` of |r|, times ``bound_margin``); the values here are the defaults without one.
+The decision accumulates the evidence of the scores |r| / u over time (a CUSUM), so a small
+persistent fault is found and a single spike is not an alarm.
 """
 from dataclasses import dataclass
 
@@ -42,25 +44,47 @@ class FdiSettings:
     encoder_speed_fraction: float = 0.2
     encoder_change_fraction: float = 0.5  # of the speed change within the interval (trapezoid error)
     timing_jitter: float = 0.002  # how far a sample's stamp may be off its sampling instant [s]
-    # decision
-    persistence: int = 3  # samples over the bound to raise an alarm
-    release: int = 50  # samples under the bound to clear it
+    # the platform-wide load condition (floor covering, payload, slope): common-mode rejection
+    load_time_constant: float = 0.5  # smoothing of the per-wheel load estimates [s]
+    load_factor_limit: float = 2.0  # the load factor stays within [1/limit, limit] [-]
+    load_warn: float = 0.25  # a load factor this far from 1 is reported (WARN) [-]
+    # decision: evidence g_k = max(0, g_{k-1} + min(|r|/u, cap) - drift), alarm at g >= threshold
+    evidence_drift: float = 1.0
+    evidence_cap: float = 3.0
+    evidence_threshold: float = 3.0
+    release: int = 50  # excited samples without evidence to clear an alarm
     frozen_samples: int = 3  # identical readings that count as frozen
     stuck_speed: float = 0.3  # a wheel slower than this with its current up is stuck [rad/s]
-    comm_timeout: float = 0.2  # a gap in /joint_states longer than this is comm_loss [s]
+    comm_timeout: float = 0.2  # a gap in /joint_states longer than this is comm_loss [s] ...
+    comm_timeout_intervals: float = 15.0  # ... and longer than this many nominal sample intervals
+    sample_interval: float = 0.0  # the nominal sample interval (identify measures it; 0: unknown) [s]
+    # identify: bounds = bound_margin * the bound_quantile of |r| on the nominal recording
+    bound_quantile: float = 0.99
+    bound_margin: float = 1.25
     classification_window: float = 0.5  # data used to name the fault type [s]
+
+    @property
+    def data_timeout(self):
+        """The gap in /joint_states [s] that counts as comm_loss: ``comm_timeout``, or longer for a
+        base that samples slowly (``comm_timeout_intervals`` nominal intervals)."""
+        return max(self.comm_timeout, self.comm_timeout_intervals * self.sample_interval)
 
     def validate(self, source='<settings>'):
         """Raise ConfigError for non-positive scales and counts."""
         problems = [name for name, value in self.__dict__.items()
                     if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0]
-        for name in ('persistence', 'release', 'frozen_samples'):
+        for name in ('release', 'frozen_samples'):
             if getattr(self, name) < 1:
                 problems.append(name)
         for name in ('observer_time_constant', 'comm_timeout', 'command_timeout',
-                     'classification_window'):
+                     'classification_window', 'load_time_constant', 'evidence_threshold',
+                     'evidence_drift'):
             if getattr(self, name) <= 0:
                 problems.append(name)
+        if self.load_factor_limit < 1.0:
+            problems.append('load_factor_limit')
+        if not 0.5 <= self.bound_quantile < 1.0:
+            problems.append('bound_quantile')
         if problems:
             msg = f'{source}: out of range: {sorted(set(problems))}'
             raise ConfigError(msg)

@@ -26,6 +26,7 @@ class DriveTrain:
     torque_constant: float  # [N·m/A]
     encoder_ticks_per_revolution: float  # per motor revolution [ticks]
     max_current: float  # firmware current limit [A]
+    signed_effort: bool = True  # False: the measured current is a magnitude (the FDI signs it)
 
     @property
     def torque_per_amp(self):

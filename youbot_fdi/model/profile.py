@@ -17,6 +17,7 @@ Schema (units in brackets)::
       torque_constant: [N·m/A]
       encoder_ticks_per_revolution: [ticks per motor rev]
       max_current: [A]
+      signed_effort: true|false           # optional (true); false: effort is a magnitude only
     dynamics:
       mass: [kg]
       yaw_inertia: [kg·m²]
@@ -105,6 +106,12 @@ class _Section:
         return tuple(self._check_number(f'{key}[{i}]', v, minimum, strict)
                      for i, v in enumerate(values))
 
+    def flag(self, key, default=False):
+        value = self.raw(key, default=default, required=False)
+        if not isinstance(value, bool):
+            self.fail(key, f'must be true or false, got {value!r}')
+        return value
+
     def text(self, key, default=None):
         value = self.raw(key, default=default, required=default is None)
         if not isinstance(value, str):
@@ -182,7 +189,8 @@ def _parse_drive(section):
         torque_constant=section.number('torque_constant', minimum=0.0, strict=True),
         encoder_ticks_per_revolution=section.number('encoder_ticks_per_revolution', minimum=0.0,
                                                     strict=True),
-        max_current=section.number('max_current', minimum=0.0, strict=True))
+        max_current=section.number('max_current', minimum=0.0, strict=True),
+        signed_effort=section.flag('signed_effort', default=True))
     section.finish()
     return drive
 
@@ -289,7 +297,8 @@ def profile_to_dict(profile):
         'drive': {'gear_ratio': profile.drive.gear_ratio,
                   'torque_constant': profile.drive.torque_constant,
                   'encoder_ticks_per_revolution': profile.drive.encoder_ticks_per_revolution,
-                  'max_current': profile.drive.max_current},
+                  'max_current': profile.drive.max_current,
+                  'signed_effort': profile.drive.signed_effort},
         'dynamics': {'mass': dyn.mass, 'yaw_inertia': dyn.yaw_inertia,
                      'wheel_inertia': [float(v) for v in dyn.wheel_inertia],
                      'viscous_friction': [float(v) for v in dyn.viscous_friction],

@@ -36,7 +36,8 @@ class DecisionNode(Node):
         self.model, self.settings = configure(declare_settings(self, FdiSettings), params_file)
         self.names = self.model.wheel_names
         self.decision = DecisionMaker(self.names, self.settings,
-                                      load_residual_data(self.settings.residual_file or None))
+                                      load_residual_data(self.settings.residual_file or None,
+                                                         self.model.wheel_names))
         self.events = []
         self._last_stamp = None
         self._last_arrival = None
@@ -58,7 +59,7 @@ class DecisionNode(Node):
 
     def check_stall(self):
         if self._last_arrival is not None and \
-                now_seconds(self) - self._last_arrival > self.settings.comm_timeout:
+                now_seconds(self) - self._last_arrival > self.settings.data_timeout:
             self.emit(self.decision.data_stalled(self._last_stamp))
 
     def emit(self, events):

@@ -16,7 +16,7 @@ from sensor_msgs.msg import JointState
 
 from youbot_fdi.fdi.pipeline import configure
 from youbot_fdi.fdi.residuals import ResidualGenerator
-from youbot_fdi.fdi.samples import SampleMapper
+from youbot_fdi.fdi.samples import message_time, SampleMapper
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, now_seconds, SENSOR_QOS, spin_nodes,
                                      stamp_to_seconds, STREAM_QOS)
@@ -41,12 +41,14 @@ class ObserverNode(Node):
         self.create_subscription(JointState, '/joint_states', self.on_joint_states, SENSOR_QOS)
 
     def on_command(self, msg):
-        sample = self.mapper.command_sample(now_seconds(self), msg.name, msg.velocity, msg.effort)
+        stamp = float(message_time(stamp_to_seconds(msg.header.stamp), now_seconds(self)))
+        sample = self.mapper.command_sample(stamp, msg.name, msg.velocity, msg.effort)
         if sample is not None:
             self.generator.command(sample)
 
     def on_joint_states(self, msg):
-        sample = self.mapper.joint_sample(stamp_to_seconds(msg.header.stamp), msg.name,
+        stamp = float(message_time(stamp_to_seconds(msg.header.stamp), now_seconds(self)))
+        sample = self.mapper.joint_sample(stamp, msg.name,
                                           msg.position, msg.velocity, msg.effort)
         if sample is None:
             return

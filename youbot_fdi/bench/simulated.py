@@ -131,7 +131,7 @@ def _timed_replay(path, params):
     """Replay and decode-only times [s] of one recording: the best of ``TIMING_REPEATS`` runs
     each, so one-time costs (imports, rosbags' generated decoders) and noise do not count."""
     from youbot_fdi.bag.reader import RecordingReader
-    from youbot_fdi.cli.replay import build_pipeline
+    from youbot_fdi.fdi.pipeline import build_pipeline
     replay_times, decode_times = [], []
     for _ in range(TIMING_REPEATS):
         model, pipeline = build_pipeline(params)
@@ -182,7 +182,7 @@ def _run_case(case):
     injected_at = float(rng.uniform(0.35, 0.6) * duration) if fault else math.nan
     record_drive(path, plant, script, mode=mode, fault=fault, wheel=wheel, fault_time=injected_at,
                  **_chain(variation))
-    from youbot_fdi.cli.replay import build_pipeline
+    from youbot_fdi.fdi.pipeline import build_pipeline
     events = build_pipeline(params)[1].replay(path).events
     visible = injected_at
     if fault == 'runaway':

@@ -147,7 +147,7 @@ def bench_replay(seconds=REPLAY_DRIVE):
     import tempfile
     from pathlib import Path
     from youbot_fdi.bag.reader import RecordingReader
-    from youbot_fdi.cli.replay import build_pipeline
+    from youbot_fdi.fdi.pipeline import build_pipeline
     from youbot_fdi.model import load_model
     from youbot_fdi.model.scenario import load_script
     from youbot_fdi.recordings import record_drive

@@ -1,0 +1,229 @@
+"""Diagnosis on data the project did not make: the clock rule, robust bound learning, evidence
+accumulation, common-mode (load) rejection, frozen readings, and the real Robotino recordings."""
+import math
+
+import numpy as np
+import pytest
+
+from youbot_fdi.bench.independent_sim import simulate
+from youbot_fdi.fdi.decision import DecisionMaker
+from youbot_fdi.fdi.pipeline import build_pipeline, FdiPipeline, load_residual_data
+from youbot_fdi.fdi.residuals import FAMILIES, ResidualFrame, ResidualGenerator
+from youbot_fdi.fdi.samples import message_time
+from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.model.profile import load_model
+
+DRIVE = [(0.3, 0.0, 0.0, 1.5), (0.0, 0.25, 0.0, 1.5), (0.0, 0.0, 0.9, 1.5), (0.2, -0.2, 0.0, 1.5),
+         (-0.25, 0.1, -0.5, 1.5), (0.0, 0.0, 0.0, 0.5)]
+
+
+@pytest.fixture(scope='module')
+def model():
+    return load_model('youbot')
+
+
+@pytest.fixture(scope='module')
+def calibrated(tmp_path_factory):
+    """identify on a nominal drive of the independent simulator (velocity mode)."""
+    from youbot_fdi.cli.main import main
+    root = tmp_path_factory.mktemp('independent')
+    simulate(root / 'nominal', DRIVE * 2, seed=1)
+    params = root / 'params.yaml'
+    assert main(['identify', str(root / 'nominal'), '--output', str(params)]) == 0
+    return root, params
+
+
+def errors(path, params):
+    return [e for e in build_pipeline(params)[1].replay(path).events if e.level == 'ERROR']
+
+
+# ---------------------------------------------------------------------- the clock rule
+def test_message_time_is_the_header_stamp_or_else_the_receive_time():
+    np.testing.assert_array_equal(message_time(np.array([5.0, 0.0]), np.array([7.0, 8.0])), [5.0, 8.0])
+
+
+def test_a_command_is_in_force_by_its_stamp_not_by_when_it_arrived(model):
+    """A command stamped with its sample is in force at that sample whether it arrived before it
+    or after it (the replay sees the whole chunk); one stamped later is not."""
+    settings = FdiSettings()
+    generator = ResidualGenerator(model, settings)
+    from youbot_fdi.fdi.samples import CommandBatch
+    commands = CommandBatch(np.array([1.0, 2.0]), np.array([True, True]),
+                            np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0]]))
+    stamps = np.array([1.0, 1.1, 2.0, 2.01])
+    _, target = generator._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
+    signs = model.kinematics.drive_signs
+    np.testing.assert_allclose(target, signs * np.array([[1.0] * 4, [1.0] * 4, [2.0] * 4, [2.0] * 4]))
+
+
+@pytest.mark.parametrize('stamping', ['before', 'with', 'after'])
+def test_commands_stamped_before_with_or_after_their_samples_give_no_false_alarm(calibrated, stamping,
+                                                                                 tmp_path):
+    root, params = calibrated
+    simulate(tmp_path / 'drive', DRIVE, seed=5, stamping=stamping)
+    assert errors(tmp_path / 'drive', params) == []
+
+
+def test_identify_learns_a_negative_delay_for_commands_stamped_late(tmp_path, model):
+    """Commands stamped a sample after the samples they produce: the input delay comes out at or
+    below zero and the command path still predicts the wheels."""
+    from youbot_fdi.fdi.identify import delay_grid, fit_input_delay, read_arrays
+    simulate(tmp_path / 'late', DRIVE, seed=3, stamping='after', delay=0.0)
+    simulate(tmp_path / 'early', DRIVE, seed=3, stamping='before', delay=0.0)
+    late = fit_input_delay(model, read_arrays(tmp_path / 'late', model), delay_grid(0.02))[0]
+    early = fit_input_delay(model, read_arrays(tmp_path / 'early', model), delay_grid(0.02))[0]
+    assert late <= 0.0 < early + 0.005
+    assert early - late == pytest.approx(0.02, abs=0.0051)  # a whole sample apart
+
+
+def test_recordings_without_header_stamps_use_the_receive_time(tmp_path, model):
+    from youbot_fdi.bag.reader import RecordingReader
+    from youbot_fdi.bag.writer import RecordingWriter
+    with RecordingWriter(tmp_path / 'r', model.wheel_names) as writer:
+        for k in range(5):
+            writer.wheel_command(100.0 + 0.01 * k, 'velocity', np.ones(4), header_stamp=None)
+            writer.joint_state(100.0 + 0.01 * k, np.zeros(4), np.zeros(4), np.zeros(4), header_stamp=None)
+    with RecordingReader(tmp_path / 'r', model.wheel_names) as reader:
+        stamps = [s.stamp for s in reader.samples()]
+    assert stamps == pytest.approx(np.repeat(100.0 + 0.01 * np.arange(5), 2))
+
+
+# ---------------------------------------------------------------------- robust bounds
+def test_quantile_bounds_ignore_an_outlier_that_a_maximum_would_learn():
+    from youbot_fdi.fdi.identify import quantile_fit
+    rng = np.random.default_rng(0)
+    speed = rng.uniform(0, 10, 4000)
+    residual = np.abs(rng.normal(0, 0.1 + 0.05 * speed))
+    features = np.column_stack([np.ones_like(speed), speed])
+    clean = quantile_fit(features, residual, 0.99)
+    residual[17] = 50.0  # one late sample
+    spoiled = quantile_fit(features, residual, 0.99)
+    np.testing.assert_allclose(spoiled, clean, rtol=0.05)
+    assert clean[1] > 0.05  # the bound grows with speed (operating point)
+    coverage = np.mean(residual <= features @ spoiled)
+    assert 0.985 <= coverage <= 0.995
+
+
+def test_identify_reports_the_coverage_of_its_bounds(calibrated, capsys):
+    from youbot_fdi.cli.main import main
+    root, _ = calibrated
+    assert main(['identify', str(root / 'nominal'), '--output', str(root / 'again.yaml')]) == 0
+    out = capsys.readouterr().out
+    assert 'nominal samples inside: torque' in out and 'sample interval 20.0 ms' in out
+
+
+# ---------------------------------------------------------------------- evidence accumulation
+def _frame(model, stamp, torque_score, position_frozen=0):
+    n = len(model.wheel_names)
+    values = {f: np.zeros(n) for f in FAMILIES}
+    values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
+    return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
+                         velocity=np.full(n, 2.0), torque=np.full(n, 0.5), command_mode='velocity',
+                         command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
+                         effort_frozen=np.zeros(n, dtype=int),
+                         position_frozen=np.array([position_frozen, 0, 0, 0]))
+
+
+def _first_alarm(model, scores):
+    decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
+    for k, score in enumerate(scores):
+        if any(e.level == 'ERROR' for e in decision.update(_frame(model, 10.0 + 0.01 * k, score))):
+            return k
+    return None
+
+
+def test_a_small_persistent_excess_adds_up_to_an_alarm(model):
+    settings = FdiSettings()
+    k = _first_alarm(model, [1.3] * 40)
+    expected = math.ceil(settings.evidence_threshold / (1.3 - settings.evidence_drift)) - 1
+    assert k == expected
+    assert _first_alarm(model, [0.95] * 400) is None  # inside the bound: never
+
+
+def test_a_single_spike_is_not_an_alarm_and_a_large_fault_is_found_at_once(model):
+    assert _first_alarm(model, [0.3] * 5 + [100.0] + [0.3] * 50) is None
+    assert _first_alarm(model, [0.3] * 5 + [100.0] * 5) == 6  # its second sample
+
+
+def test_a_position_repeating_while_the_wheel_turns_is_a_frozen_sensor(model):
+    decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
+    events = []
+    for k in range(5):
+        events += decision.update(_frame(model, 10.0 + 0.03 * k, 0.0, position_frozen=k + 1))
+    assert [(e.level, e.wheel, e.fault) for e in events] == [('ERROR', 'wheel_joint_fl', 'encoder_freeze')]
+
+
+def test_a_frozen_encoder_is_found_at_a_low_rate(tmp_path, model, calibrated):
+    """The independent simulator's 50 Hz readings freeze on one wheel: found on that wheel
+    within a few samples."""
+    _, params = calibrated
+    start = simulate(tmp_path / 'freeze', DRIVE, fault='encoder_freeze', wheel=1, fault_time=2.0, seed=7)
+    alarms = errors(tmp_path / 'freeze', params)
+    assert alarms and {e.wheel for e in alarms} == {'wheel_joint_fr'}
+    assert 0.0 <= alarms[0].stamp - (start + 2.0) <= 0.1
+
+
+# ---------------------------------------------------------------------- common-mode rejection
+def test_a_surface_change_on_every_wheel_is_a_warning_not_a_fault(tmp_path, calibrated):
+    _, params = calibrated
+    simulate(tmp_path / 'surface', DRIVE, seed=9, surface_factor=1.8, surface_time=3.0)
+    events = build_pipeline(params)[1].replay(tmp_path / 'surface').events
+    assert [e for e in events if e.level == 'ERROR'] == []
+    warnings = [e for e in events if e.level == 'WARN']
+    assert warnings and warnings[0].fault == 'load_change' and warnings[0].wheel is None
+    assert 'surface or load changed' in warnings[0].detail
+
+
+def test_one_wheel_departing_from_the_others_still_alarms(tmp_path, calibrated):
+    _, params = calibrated
+    start = simulate(tmp_path / 'one', DRIVE, seed=9, fault='friction', wheel=2, fault_time=3.0)
+    alarms = errors(tmp_path / 'one', params)
+    assert alarms and alarms[0].wheel == 'wheel_joint_bl' and alarms[0].stamp >= start + 3.0
+
+
+def test_the_load_factor_is_the_part_every_wheel_shares(model):
+    generator = ResidualGenerator(model, FdiSettings(torque_sigma=0.01))
+    friction = np.array([0.2, 0.2, 0.2, 0.2])
+    both = np.concatenate([[1.5, 1.3, 1.4, 1.6] * friction, friction])
+    assert float(generator._load_factor(both, 1.0)[0]) == pytest.approx(1.3)
+    one = np.concatenate([[2.0, 1.0, 1.0, 1.0] * friction, friction])
+    assert float(generator._load_factor(one, 1.0)[0]) == pytest.approx(1.0)  # one wheel: a fault
+
+
+# ---------------------------------------------------------------------- the real recordings
+robotino = pytest.importorskip('youbot_fdi.bench.robotino')
+needs_data = pytest.mark.skipif(robotino.data_dir() is None,
+                                reason='the Robotino recordings (../shared/real_data/robotino) are absent')
+
+
+@needs_data
+def test_real_robotino_runs_convert_and_a_frozen_encoder_is_found(tmp_path):
+    """A green-surface calibration, then a gray-surface run (another floor covering) with one
+    wheel's encoder frozen half-way: found on that wheel; the same run untouched: no alarm."""
+    from youbot_fdi.cli.main import main
+    root = robotino.data_dir()
+    model = load_model(robotino.PROFILE)
+    calibration = [robotino.read_run(root / 'green_surface' / f'exp{nn:02d}.csv') for nn in (0, 18, 36, 54)]
+    robotino.write_recording(calibration, tmp_path / 'cal', model)
+    params = tmp_path / 'params.yaml'
+    assert main(['identify', str(tmp_path / 'cal'), '--profile', 'robotino', '--output', str(params)]) == 0
+    run = robotino.read_run(root / 'gray_surface' / 'exp24.csv')
+    robotino.write_recording([run], tmp_path / 'clean', model)
+    assert errors(tmp_path / 'clean', params) == []
+    onset = len(run) // 2
+    start = robotino.write_recording([robotino.inject(run, 'encoder_freeze', 0, onset)],
+                                     tmp_path / 'frozen', model)[0]
+    alarms = errors(tmp_path / 'frozen', params)
+    assert alarms and alarms[0].wheel == 'robotino_wheel_1'
+    assert 0.0 <= alarms[0].stamp - (start + run.time[onset] - run.time[0]) <= 0.3
+
+
+def test_unsigned_effort_is_signed_by_the_explained_torque(model):
+    """A profile whose effort is a magnitude: the generator signs it, so a braking wheel's torque
+    is negative as it is physically."""
+    from dataclasses import replace
+    from youbot_fdi.model.profile import PlatformModel
+    unsigned = PlatformModel(replace(model.profile, drive=replace(model.drive, signed_effort=False)))
+    generator = ResidualGenerator(unsigned, FdiSettings())
+    assert generator._signed(np.array([0.5, 0.5]), np.array([-0.2, 0.3])).tolist() == [-0.5, 0.5]
+    assert FdiPipeline(unsigned).generator.signed_effort is False

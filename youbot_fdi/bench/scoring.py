@@ -1,0 +1,84 @@
+"""Scoring a fault benchmark case from its fault events, and the printed table of a suite.
+
+Shared by every suite of ``youbot-fdi bench --faults``: one rule for what counts as detected,
+isolated, named right, how late, and what is a false alarm.
+"""
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+ERROR = 'ERROR'
+#: The type named for an episode is its last ERROR on that wheel within this time of the first [s]
+#: (a type may be refined once the classification window is full).
+NAMING_WINDOW = 0.55
+
+
+@dataclass(frozen=True)
+class Case:
+    """One recording of a suite and what was injected into it."""
+
+    name: str
+    path: str  # the rosbag2 recording
+    duration: float  # [s]
+    fault: object = None  # the injected fault (suite's own name), or None
+    wheel: object = None  # joint name
+    onset: float = math.nan  # header stamp from which the fault is in the data [s]
+    expected: object = None  # the fault type the contract would name, or None (any type)
+    start: float = 0.0  # header stamp of the recording's first sample [s]
+    injected: float = math.nan  # when the fault was injected, if before it shows (runaway) [s]
+
+
+def score(case, events):
+    """A result dict for ``case`` from its fault events (FaultEvent list)."""
+    alarms = [e for e in events if e.level == ERROR]
+    faulty = case.fault is not None
+    begins = case.onset if math.isnan(case.injected) else min(case.injected, case.onset)
+    early = [e for e in alarms if not faulty or e.stamp < begins]
+    late = [e for e in alarms if faulty and e.stamp >= begins]
+    first = late[0] if late else None
+    named = None
+    if first is not None:
+        episode = [e for e in late if e.wheel == first.wheel and e.stamp - first.stamp <= NAMING_WINDOW]
+        named = episode[-1].fault
+    fault_free = begins - case.start if faulty else case.duration
+    return {'case': case.name, 'fault': case.fault, 'wheel': case.wheel,
+            'fault_free_seconds': fault_free,
+            'false_alarms': len(early) + (0 if first is None else len({e.wheel for e in late} - {case.wheel})),
+            'false_alarm_faults': sorted({f'{e.wheel}:{e.fault}' for e in early}),
+            'detected': first is not None,
+            'isolated': first is not None and first.wheel == case.wheel,
+            'named': first is not None and (case.expected is None or named == case.expected),
+            'named_as': named,
+            'delay': max(0.0, first.stamp - case.onset) if first is not None else math.nan,
+            'warnings': sum(e.level == 'WARN' for e in events)}
+
+
+def summarise(title, results):
+    """The printed table of one suite: per fault, then totals (false alarms per hour)."""
+    faulty = [r for r in results if r['fault']]
+    hours = sum(r['fault_free_seconds'] for r in results) / 3600.0
+    false_alarms = sum(r['false_alarms'] for r in results)
+    lines = [title, f'  {"fault":<18}{"cases":>6}{"detected":>10}{"isolated":>10}{"named":>8}'
+                    f'{"median delay":>14}{"p90 delay":>11}']
+    for fault in sorted({r['fault'] for r in faulty}):
+        rows = [r for r in faulty if r['fault'] == fault]
+        lines.append('  ' + _row(fault, rows))
+    lines.append('  ' + _row('all faults', faulty))
+    with_alarms = sorted({r['case'] for r in results if r['false_alarms']})
+    lines.append(f'  false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free'
+                 + (f' = {false_alarms / hours:.1f} per hour' if hours else '')
+                 + f'; runs with one: {len(with_alarms)} of {len(results)}')
+    if with_alarms:
+        lines.append('    ' + ', '.join(with_alarms[:12]) + (' ...' if len(with_alarms) > 12 else ''))
+    lines.append(f'  load-condition warnings (WARN, not alarms): {sum(r["warnings"] for r in results)}')
+    return '\n'.join(lines)
+
+
+def _row(label, rows):
+    delays = np.array([r['delay'] for r in rows if r['detected'] and r['isolated']])
+    median = np.median(delays) * 1000 if len(delays) else math.nan
+    p90 = np.percentile(delays, 90) * 1000 if len(delays) else math.nan
+    return (f'{label:<18}{len(rows):>6}{sum(r["detected"] for r in rows):>10}'
+            f'{sum(r["isolated"] for r in rows):>10}{sum(r["named"] for r in rows):>8}'
+            f'{median:>12.0f}ms{p90:>9.0f}ms')
