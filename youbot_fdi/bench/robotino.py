@@ -146,7 +146,7 @@ def write_recording(runs, path, model, stamping='with', gap=1.0, storage='sqlite
 
 
 # ---------------------------------------------------------------------- the real-data suite
-#: Calibration: the green runs with NN % CALIBRATION_EVERY == 0 (every direction step of 90°,
+#: Calibration: the green runs with NN % CALIBRATION_EVERY == 0 (every 90° of direction at
 #: each speed), concatenated into one nominal recording, as a user's calibration drive would be.
 CALIBRATION_EVERY = 18
 FAULT_RUNS = 10  # runs per injected fault

@@ -4,7 +4,8 @@
    ``g_k = max(0, g_{k-1} + min(z_k, evidence_cap) - evidence_drift)``; a residual alarms while
    ``g >= evidence_threshold`` and clears after ``release`` excited samples below it. A small
    persistent excess is found (it adds up), a single spike is not an alarm (it is capped and
-   drains away). A position reading that repeats exactly while the wheel is commanded and measured
+   drains away). Torque and command-path evidence on half the wheels or more at once (half the
+   threshold each) is a change they share, not a wheel fault. A position reading that repeats exactly while the wheel is commanded and measured
    to turn is direct evidence of a frozen sensor (``frozen_samples`` in a row), at any rate.
 2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
    analysis (``config/residuals/<model>.yaml``): a fault is a candidate when every alarming torque
@@ -38,6 +39,9 @@ from youbot_fdi.structure.generate import wheel_suffix
 
 OK, WARN, ERROR = 'OK', 'WARN', 'ERROR'
 TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'encoder'))
+#: Families judged against the other wheels, and the share of the threshold that counts as evidence.
+SHARED_FAMILIES = [TORQUE, COMMAND]
+SHARED_SHARE = 0.5
 LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
 EXCITED_TORQUE_SIGMAS = 3.0
@@ -163,7 +167,14 @@ class DecisionMaker:
         ``below`` (excited rows since it last was) reaches ``release``, and otherwise kept. So the
         alarm after row k is decided by the latest row that set or cleared it.
         """
-        over = self.evidence(z) >= self.settings.evidence_threshold
+        threshold = self.settings.evidence_threshold
+        evidence = self.evidence(z)
+        over = evidence >= threshold
+        # Judged against the others: evidence on half the wheels or more at once is a change they
+        # share (surface, load, timing), not a wheel fault, until the load factor has caught up.
+        shared = (np.count_nonzero(evidence[:, SHARED_FAMILIES] >= SHARED_SHARE * threshold, axis=-1)
+                  * 2 >= self.n)
+        over[:, SHARED_FAMILIES] &= ~shared[..., None]
         rows = len(over)
         if rows == 1:  # the same latch, one row (the live path)
             self._below = np.where(over[0], 0, self._below + excited[0])
@@ -306,10 +317,14 @@ class DecisionMaker:
         for w in disagreeing:
             if not fired and not faulty - {int(w)}:
                 # A wheel that stands while commanded to turn is blocked, not running away.
-                standing = (frame.command_mode == 'velocity'
-                            and abs(frame.velocity[w]) < self.settings.stuck_speed
-                            < abs(frame.command[w]))
-                kind = FaultKind.STUCK if standing else FaultKind.RUNAWAY
+                # A wheel that lags behind its command path (slower, same direction) lacks torque
+                # or meets friction, named from the torque history; one that is faster or turns
+                # the other way runs away.
+                speed = frame.velocity[w]
+                predicted = speed - frame.values['command'][w]
+                lagging = (frame.command_mode == 'velocity' and abs(speed) < abs(predicted)
+                           and speed * predicted >= 0.0)
+                kind = None if lagging else FaultKind.RUNAWAY
                 diagnoses[int(w)] = (kind, (f'command_{self.suffixes[w]}',))
         return diagnoses
 

@@ -107,17 +107,13 @@ def fit_dynamics(arrays, model):
     p_xy = forward.T @ np.diag([1.0, 1.0, 0.0]) @ forward
     p_z = forward.T @ np.diag([0.0, 0.0, 1.0]) @ forward
     k, n = speed.shape
-    prior = model.dynamics.parameters
-    scale = prior.coulomb_velocity_scale
+    scale = model.dynamics.parameters.coulomb_velocity_scale
     columns = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
-    for j in range(n):
-        mask = np.zeros((k, n))
-        mask[:, j] = 1.0
-        columns.append((speed * mask).ravel())
-    for j in range(n):
-        mask = np.zeros((k, n))
-        mask[:, j] = 1.0
-        columns.append((np.tanh(speed / scale) * mask).ravel())
+    for law in (speed, np.tanh(speed / scale)):
+        for j in range(n):
+            mask = np.zeros((k, n))
+            mask[:, j] = 1.0
+            columns.append((law * mask).ravel())
     design = np.column_stack(columns)
     if model.drive.signed_effort:
         return _solve_dynamics(design, torque.ravel(), model, n)

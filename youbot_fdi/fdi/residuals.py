@@ -469,14 +469,17 @@ class ResidualGenerator:
         return torque if self.signed_effort else np.abs(torque) * np.sign(explained)
 
     def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, explained, friction, load, step):
-        """(residual, features, mean torque) of the torque family; ``load`` the load factor
-        (scalar or (N, 1)) scales the friction part of the explained torque."""
+        """(residual, features, allowance, mean torque) of the torque family; ``load`` the load
+        factor (scalar or (N, 1)) scales the friction part of the explained torque, and the bound
+        allows ``load_allowance`` of that change (the factor is an estimate: how friction splits
+        into its viscous and Coulomb parts changes with the floor too)."""
         mean_torque = 0.5 * (torque + prev_torque)
         inertial = (velocity - prev_velocity) @ self.mass_matrix.T / step
         residual = mean_torque - explained - (load - 1.0) * friction
+        allowance = self.settings.load_allowance * np.abs((load - 1.0) * friction)
         features = np.stack(np.broadcast_arrays(
             1.0, np.abs(inertial), np.abs(torque - prev_torque), np.abs(load * friction)), axis=-1)
-        return residual, features, mean_torque
+        return residual, features, allowance, mean_torque
 
     def _load_votes(self, mean_torque, explained, friction):
         """Per wheel, (load part: measured minus inertial torque, friction part), zero where the
@@ -574,8 +577,10 @@ class ResidualGenerator:
         shared, voted = self._load_factor(smoothed, self._load[1])
         load = float(shared) if voted else self._load[1]
         self._load = (smoothed, load)
-        torque_r, torque_f, mean_torque = self._torque_terms(
+        torque_r, torque_f, torque_a, mean_torque = self._torque_terms(
             torque, last_torque, velocity, last_velocity, explained, friction, load, dt)
+        # The load condition adds to the friction the predictions work against (at the measured speed).
+        coulomb = coulomb + (load - 1.0) * friction
 
         applied = mean_torque if np.isfinite(mean_torque).all() else 0.0
         predicted = phi @ self._observer + gamma @ (applied - coulomb)
@@ -603,7 +608,7 @@ class ResidualGenerator:
         return ResidualFrame(
             stamp=stamp,
             values={'torque': torque_r, 'observer': observer_r, 'command': command_r, 'encoder': encoder_r},
-            bounds={'torque': self.bound('torque', torque_f),
+            bounds={'torque': self.bound('torque', torque_f) + torque_a,
                     'observer': self.bound('observer', self._observer_features(predicted)),
                     'command': command_u, 'encoder': self.bound('encoder', encoder_f)},
             velocity=velocity, torque=torque, command_mode=VELOCITY if velocity_mode else 'effort',
@@ -653,8 +658,9 @@ class ResidualGenerator:
             self._load_votes(mean_torque, explained, friction), axis=1), self._load[0])
         shared, voted = self._load_factor(smoothed, self._load[1])
         load = last_true_value(voted, shared, self._load[1])
-        torque_r, torque_f, mean_torque = self._torque_terms(
+        torque_r, torque_f, torque_a, mean_torque = self._torque_terms(
             torque, prev_torque, velocity, prev_velocity, explained, friction, load[:, None], step)
+        coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
 
         # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
         known = np.isfinite(mean_torque).all(axis=1, keepdims=True)
@@ -701,7 +707,7 @@ class ResidualGenerator:
         self._last_target = target[-1]
         features = {'torque': torque_f, 'observer': observer_f, 'command': velocity_f,
                     'effort': effort_f, 'encoder': encoder_f}
-        batch = self._batch(stamp, torque_r, self.bound('torque', torque_f), observer_r,
+        batch = self._batch(stamp, torque_r, self.bound('torque', torque_f) + torque_a, observer_r,
                             self.bound('observer', observer_f), command_r, command_u, encoder_r,
                             self.bound('encoder', encoder_f), velocity, torque, velocity_mode, target,
                             frozen, effort_frozen, position_frozen, load, speed, features)

@@ -13,6 +13,10 @@ from dataclasses import dataclass
 from youbot_fdi.errors import ConfigError
 
 
+#: Settings that may be negative: commands stamped after the samples they produce act "early".
+SIGNED = ('input_delay',)
+
+
 @dataclass(frozen=True)
 class FdiSettings:
     """Units in the comments; see ``config/fdi.yaml`` for the reasoning behind the defaults."""
@@ -47,6 +51,7 @@ class FdiSettings:
     # the platform-wide load condition (floor covering, payload, slope): common-mode rejection
     load_time_constant: float = 0.5  # smoothing of the per-wheel load estimates [s]
     load_factor_limit: float = 2.0  # the load factor stays within [1/limit, limit] [-]
+    load_allowance: float = 0.5  # share of the load's change to the friction torque the bound allows [-]
     load_warn: float = 0.25  # a load factor this far from 1 is reported (WARN) [-]
     # decision: evidence g_k = max(0, g_{k-1} + min(|r|/u, cap) - drift), alarm at g >= threshold
     evidence_drift: float = 1.0
@@ -72,7 +77,8 @@ class FdiSettings:
     def validate(self, source='<settings>'):
         """Raise ConfigError for non-positive scales and counts."""
         problems = [name for name, value in self.__dict__.items()
-                    if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0]
+                    if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0
+                    and name not in SIGNED]
         for name in ('release', 'frozen_samples'):
             if getattr(self, name) < 1:
                 problems.append(name)
