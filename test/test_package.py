@@ -104,3 +104,20 @@ def test_every_node_parameter_file_loads_into_its_settings():
     bridge = node_parameters(yaml.safe_load((REPO / 'config' / 'kinematics_bridge.yaml').read_text()),
                              'kinematics_bridge')
     assert set(bridge) == {'profile', 'max_wheel_speed', 'odom_frame', 'base_frame'}
+
+
+def test_imports_run_downward():
+    """No core module (model, structure, fdi, tmcm, bag, and the top-level helpers) imports cli,
+    bench or nodes, at module level or inside a function."""
+    import ast
+    upper = ('youbot_fdi.cli', 'youbot_fdi.bench', 'youbot_fdi.nodes')
+    offenders = []
+    for path in sorted((REPO / 'youbot_fdi').rglob('*.py')):
+        relative = path.relative_to(REPO / 'youbot_fdi').parts
+        if relative[0] in ('cli', 'bench', 'nodes'):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([node.module or ''] if isinstance(node, ast.ImportFrom)
+                     else [a.name for a in node.names] if isinstance(node, ast.Import) else [])
+            offenders += [f'{path.name}: {n}' for n in names if n.startswith(upper)]
+    assert offenders == []

@@ -42,7 +42,8 @@ TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'en
 #: Families judged against the other wheels, and the share of the threshold that counts as evidence.
 SHARED_FAMILIES = [TORQUE, COMMAND]
 SHARED_SHARE = 0.5
-LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
+LOAD_RELEASE = 0.5
+MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name comm_loss, not a freeze  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
 EXCITED_TORQUE_SIGMAS = 3.0
 #: Fault types the classification window may still change after the alarm.
@@ -296,7 +297,11 @@ class DecisionMaker:
         # exactly while the wheel is commanded and measured to turn; frozen readings alone prove
         # nothing: a standing wheel reads the same every sample.
         for w in sorted(set(np.flatnonzero(self._family('encoder'))) | still_frozen | stopped):
-            frozen_effort = frame.effort_frozen[w] >= self.settings.frozen_samples
+            # Every reading of the module stale together (effort too, as long as the rest): no
+            # fresh data from it. Evidence may name the fault before frozen_samples are counted.
+            stale = frame.effort_frozen[w]
+            frozen_effort = (stale >= self.settings.frozen_samples
+                             or (stale >= MIN_STALE_SAMPLES and stale >= frame.frozen[w]))
             kind = FaultKind.COMM_LOSS if frozen_effort else FaultKind.ENCODER_FREEZE
             diagnoses[int(w)] = (kind, (f'encoder_{self.suffixes[w]}',))
         if diagnoses:

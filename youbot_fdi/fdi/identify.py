@@ -264,7 +264,7 @@ def quantile_fit(features, target, quantile, rows=QUANTILE_ROWS, seed=0):
     result = scipy.optimize.linprog(cost, A_eq=system, b_eq=target, bounds=(0, None), method='highs')
     if not result.success:
         return None
-    return result.x[:k] / scale
+    return np.maximum(result.x[:k], 0.0) / scale  # the solver's tolerance may leave -1e-17
 
 
 def fit_bounds(model, arrays, settings):
