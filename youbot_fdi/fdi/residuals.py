@@ -65,6 +65,16 @@ DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
 MAX_PENDING_COMMANDS = 256
 
 
+def columns(*values):
+    """The arrays (or scalars) ``values``, broadcast together, as the columns of one array
+    (..., k): a bound's features (cheaper than stacking broadcast copies)."""
+    shape = np.broadcast_shapes(*(np.shape(v) for v in values))
+    out = np.empty(shape + (len(values),))
+    for j, value in enumerate(values):
+        out[..., j] = value
+    return out
+
+
 def scores(values, bounds):
     """|r| / u; 0 where a residual cannot be computed (NaN: no effort recorded), so it is silent."""
     z = np.abs(values) / bounds
@@ -477,8 +487,7 @@ class ResidualGenerator:
         inertial = (velocity - prev_velocity) @ self.mass_matrix.T / step
         residual = mean_torque - explained - (load - 1.0) * friction
         allowance = self.settings.load_allowance * np.abs((load - 1.0) * friction)
-        features = np.stack(np.broadcast_arrays(
-            1.0, np.abs(inertial), np.abs(torque - prev_torque), np.abs(load * friction)), axis=-1)
+        features = columns(1.0, np.abs(inertial), np.abs(torque - prev_torque), np.abs(load * friction))
         return residual, features, allowance, mean_torque
 
     def _load_votes(self, mean_torque, explained, friction):
@@ -499,17 +508,16 @@ class ResidualGenerator:
         n, limit = self.n, self.settings.load_factor_limit
         load, friction = smoothed[..., :n], smoothed[..., n:]
         votes = np.abs(friction) >= self.settings.torque_sigma
-        ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
-        heavier = np.all(np.where(votes, ratio > 1.0, True), axis=-1)
-        lighter = np.all(np.where(votes, ratio < 1.0, True), axis=-1)
-        with np.errstate(all='ignore'):
-            shared = np.where(heavier, np.nanmin(np.where(votes, ratio, np.inf), axis=-1),
-                              np.where(lighter, np.nanmax(np.where(votes, ratio, -np.inf), axis=-1), 1.0))
+        ratio = load / np.where(votes, friction, 1.0)
+        heavier = np.all(~votes | (ratio > 1.0), axis=-1)
+        lighter = np.all(~votes | (ratio < 1.0), axis=-1)
+        shared = np.where(heavier, np.min(np.where(votes, ratio, np.inf), axis=-1),
+                          np.where(lighter, np.max(np.where(votes, ratio, -np.inf), axis=-1), 1.0))
         shared = np.clip(shared, 1.0 / limit, limit)
         return shared, votes.any(axis=-1)
 
     def _observer_features(self, predicted):
-        return np.stack(np.broadcast_arrays(1.0, np.abs(predicted)), axis=-1)
+        return columns(1.0, np.abs(predicted))
 
     def _command_terms(self, velocity, torque, speed, before, target, previous_target, velocity_mode,
                        settling, step):
@@ -520,10 +528,9 @@ class ResidualGenerator:
         features of both bounds."""
         s = self.settings
         residual = np.where(settling, 0.0, np.where(velocity_mode, velocity - speed, torque - target))
-        velocity_f = np.stack(np.broadcast_arrays(
-            1.0, np.abs(speed), np.maximum(np.abs(target - speed), np.abs(target - before)),
-            np.abs(speed - before) / step), axis=-1)
-        effort_f = np.stack(np.broadcast_arrays(1.0, np.abs(target)), axis=-1)
+        velocity_f = columns(1.0, np.abs(speed), np.maximum(np.abs(target - speed), np.abs(target - before)),
+                             np.abs(speed - before) / step)
+        effort_f = columns(1.0, np.abs(target))
         effort_u = (self.bound('effort', effort_f)
                     + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
         bound = np.where(settling, 1.0, np.where(velocity_mode, self.bound('command', velocity_f), effort_u))
@@ -532,8 +539,7 @@ class ResidualGenerator:
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
         """(residual, features) of the encoder family."""
         residual = (position - prev_position) - mean_speed * step
-        features = np.stack(np.broadcast_arrays(1.0, np.abs(mean_speed) * step, np.abs(change) * step,
-                                                np.abs(mean_speed)), axis=-1)
+        features = columns(1.0, np.abs(mean_speed) * step, np.abs(change) * step, np.abs(mean_speed))
         return residual, features
 
     def _moving(self, mean_speed, target, velocity_mode, step):
