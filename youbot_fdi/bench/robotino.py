@@ -169,8 +169,8 @@ def suite_cases(root):
     cross coverings and green runs that continue on gray half-way, and faults injected."""
     green = _runs(root / SURFACES[0], lambda nn: True)
     gray = _runs(root / SURFACES[1], lambda nn: True)
-    calibration = [r for r in green if _run_number(r.name + '.csv') % CALIBRATION_EVERY == 0]
-    held_out = [r for r in green if _run_number(r.name + '.csv') % CALIBRATION_EVERY]
+    calibration = [r for r in green if _run_number(r.name) % CALIBRATION_EVERY == 0]
+    held_out = [r for r in green if _run_number(r.name) % CALIBRATION_EVERY]
     cases = [(f'green/{r.name}', [r], None, None, None) for r in held_out]
     cases += [(f'gray/{r.name}', [r], None, None, None) for r in gray]
     crossing_dir = root / IDENTIFICATION_DIR

@@ -259,6 +259,8 @@ class ResidualGenerator:
         self.position_quantum = 2.0 * np.pi * drive.gear_ratio / drive.encoder_ticks_per_revolution
         self._coefficients = {family: np.array([getattr(settings, name) for name in names])
                               for family, names in BOUND_TERMS.items()}
+        #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
+        self._load = (np.zeros(2 * self.n), 1.0)
         self._last = None
         self.skipped = 0
 
@@ -380,8 +382,6 @@ class ResidualGenerator:
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._position_frozen = np.zeros(self.n, dtype=int)
-        if not hasattr(self, '_load'):  # the load condition outlives gaps in the data
-            self._load = (np.zeros(2 * self.n), 1.0)  # smoothed [load part; friction] per wheel, factor
         if not self.signed_effort:
             torque = np.abs(torque) * np.sign(velocity)
         self._last = (stamp, position, velocity, torque)
