@@ -5,8 +5,9 @@
    ``g >= evidence_threshold`` and clears after ``release`` excited samples below it. A small
    persistent excess is found (it adds up), a single spike is not an alarm (it is capped and
    drains away). Torque and command-path evidence on half the wheels or more at once (half the
-   threshold each) is a change they share, not a wheel fault. A position reading that repeats exactly while the wheel is commanded and measured
-   to turn is direct evidence of a frozen sensor (``frozen_samples`` in a row), at any rate.
+   threshold each) is a change they share, not a wheel fault. A position reading that repeats
+   exactly while the wheel is commanded and measured to turn is direct evidence of a frozen
+   sensor (``frozen_samples`` in a row), at any rate.
 2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
    analysis (``config/residuals/<model>.yaml``): a fault is a candidate when every alarming torque
    residual is in its signature, and the candidates whose torque signature has the fewest silent
@@ -42,8 +43,8 @@ TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'en
 #: Families judged against the other wheels, and the share of the threshold that counts as evidence.
 SHARED_FAMILIES = [TORQUE, COMMAND]
 SHARED_SHARE = 0.5
-LOAD_RELEASE = 0.5
-MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name comm_loss, not a freeze  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
+LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
+MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name comm_loss, not a freeze
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
 EXCITED_TORQUE_SIGMAS = 3.0
 #: Fault types the classification window may still change after the alarm.
@@ -105,7 +106,7 @@ class DecisionMaker:
         shape = (len(FAMILIES), self.n)
         self._evidence = np.zeros(shape)
         self._below = np.zeros(shape, dtype=int)
-        self.load_level, self.load_factor = OK, 1.0
+        self.load_level = OK  # of the load condition (OK or WARN)
         self.alarm = np.zeros(shape, dtype=bool)
         self.components = {w: _Component() for w in self.wheel_names}
         self.components[BASE] = _Component()
@@ -209,8 +210,6 @@ class DecisionMaker:
             events.append(FaultEvent(float(stamps[k]), level, BASE, LOAD_CHANGE, ('load_factor',), detail))
             k += 1
         self.load_level = level
-        if len(departure):
-            self.load_factor = float(factors[-1])
         return events
 
     def _can_diagnose(self, alarm, position_frozen):

@@ -34,7 +34,7 @@ import scipy.sparse
 
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
-from youbot_fdi.fdi.residuals import BOUND_TERMS, ResidualGenerator
+from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator
 from youbot_fdi.fdi.samples import CommandBatch, JointBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
@@ -281,8 +281,7 @@ def fit_bounds(model, arrays, settings):
                                                   & (batch.bounds['command'] == 1.0), axis=1)
     residual = {family: np.abs(batch.values[family]) for family in ('torque', 'observer', 'encoder')}
     residual['command'] = np.where(velocity_rows[:, None], np.abs(batch.values['command']), np.nan)
-    generator = ResidualGenerator(model, settings)
-    allowance = batch.bounds['command'] - generator.bound('effort', batch.features['effort'])
+    allowance = batch.bounds['command'] - batch.features['effort'] @ bound_weights(settings, 'effort')
     effort_rows = ~batch.velocity_mode
     residual['effort'] = np.where(effort_rows[:, None], np.abs(batch.values['command']) - allowance, np.nan)
     learned, coverage = {}, {}

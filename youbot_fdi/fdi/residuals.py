@@ -65,6 +65,11 @@ DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
 MAX_PENDING_COMMANDS = 256
 
 
+def bound_weights(settings, family):
+    """The weights of ``family``'s bound features (:data:`BOUND_TERMS`) in ``settings``, (k,)."""
+    return np.array([getattr(settings, name) for name in BOUND_TERMS[family]])
+
+
 def columns(*values):
     """The arrays (or scalars) ``values``, broadcast together, as the columns of one array
     (..., k): a bound's features (cheaper than stacking broadcast copies)."""
@@ -257,8 +262,7 @@ class ResidualGenerator:
         self.signed_effort = drive.signed_effort
         #: one encoder tick at the wheel [rad]
         self.position_quantum = 2.0 * np.pi * drive.gear_ratio / drive.encoder_ticks_per_revolution
-        self._coefficients = {family: np.array([getattr(settings, name) for name in names])
-                              for family, names in BOUND_TERMS.items()}
+        self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
         self._load = (np.zeros(2 * self.n), 1.0)
         self._last = None
@@ -382,8 +386,7 @@ class ResidualGenerator:
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._position_frozen = np.zeros(self.n, dtype=int)
-        if not self.signed_effort:
-            torque = np.abs(torque) * np.sign(velocity)
+        torque = self._signed(torque, velocity)  # no explained torque yet: the speed's sign
         self._last = (stamp, position, velocity, torque)
         self._last_target = target
         self._started = stamp
@@ -474,9 +477,10 @@ class ResidualGenerator:
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
         return explained, self.friction * mean_speed + coulomb, coulomb, mean_speed
 
-    def _signed(self, torque, explained):
-        """The measured torque; a magnitude (``signed_effort: false``) takes the explained sign."""
-        return torque if self.signed_effort else np.abs(torque) * np.sign(explained)
+    def _signed(self, torque, reference):
+        """The measured torque; a magnitude (``signed_effort: false``) takes the sign of
+        ``reference`` (the explained torque, or at a restart the speed)."""
+        return torque if self.signed_effort else np.abs(torque) * np.sign(reference)
 
     def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, explained, friction, load, step):
         """(residual, features, allowance, mean torque) of the torque family; ``load`` the load
@@ -656,7 +660,7 @@ class ResidualGenerator:
         explained, friction, coulomb, mean_speed = self._explained(velocity, prev_velocity, phi, gamma_inv)
         torque = self._signed(torque, explained)
         if not self.signed_effort and restart.any():  # as _restart signs it
-            torque[restart] = np.abs(joints.effort[restart]) * np.sign(velocity[restart])
+            torque[restart] = self._signed(torque[restart], velocity[restart])
         prev_torque = np.concatenate([last_torque[None], torque[:-1]])
         mean_torque = 0.5 * (torque + prev_torque)
         keep = self._smoothing(dt)
