@@ -16,9 +16,9 @@ def add_parser(subparsers):
                     '(detection, isolation, delays, false alarms per hour, replay speed against '
                     'decode-only) in both control modes.')
     parser.add_argument('--faults', action='store_true',
-                        help='run the fault benchmark instead: every fault on every wheel on '
-                             'randomly varied plants, calibrated with identify (about 7 minutes '
-                             'on 2 cores)')
+                        help='run the fault benchmark instead: its suites (see --suites), each '
+                             'calibrated with identify as a user would (about 11 minutes on 2 '
+                             'cores for all three)')
     parser.add_argument('--variations', type=int, default=3,
                         help='plants in the fault benchmark, the nominal one first (default: 3)')
     parser.add_argument('--seed', type=int, default=0, help='random seed of the fault benchmark')
