@@ -13,8 +13,10 @@ def add_parser(subparsers):
                     'virtual base, replay and the live FDI path, and the node suite, each against '
                     'a baseline measured in the same run (printed as ratios, so results compare '
                     'across machines). Takes about 30 s. With --faults: the fault benchmark '
-                    '(detection, isolation, delays, false alarms per hour, replay speed against '
-                    'decode-only) in both control modes.')
+                    '(detection, isolation, delays, false alarms per hour) on three suites side '
+                    'by side: the project\'s virtual base (both control modes, with replay speed '
+                    'against decode-only), an independently written simulator, and the real '
+                    'Robotino recordings in shared/.')
     parser.add_argument('--faults', action='store_true',
                         help='run the fault benchmark instead: its suites (see --suites), each '
                              'calibrated with identify as a user would (about 11 minutes on 2 '
