@@ -18,10 +18,10 @@ from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.pipeline import FdiPipeline, load_residual_data
 from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, run_lengths
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
-from youbot_fdi.fdi.samples import SampleMapper
+from youbot_fdi.samples import SampleMapper
 from youbot_fdi.model import load_model
 from youbot_fdi.model.scenario import load_script
-from youbot_fdi.recordings import record_drive
+from youbot_fdi.tmcm.recordings import record_drive
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 SMALL_CHUNK = 37  # messages: many chunk boundaries, none aligned with anything

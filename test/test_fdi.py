@@ -14,7 +14,7 @@ from youbot_fdi.cli.main import main
 from youbot_fdi.fdi.pipeline import build_pipeline
 from youbot_fdi.model import load_model, load_profile
 from youbot_fdi.model.scenario import DriveScript, load_script
-from youbot_fdi.recordings import DEFAULT_START_STAMP, record_drive
+from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.settings import load_settings
 

@@ -9,7 +9,7 @@ from youbot_fdi.bench.independent_sim import simulate
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.pipeline import build_pipeline, FdiPipeline, load_residual_data
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualFrame, ResidualGenerator
-from youbot_fdi.fdi.samples import message_time
+from youbot_fdi.samples import message_time
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model
 
@@ -50,7 +50,7 @@ def test_a_command_is_in_force_by_its_stamp_not_by_when_it_arrived(model):
     or after it (the replay sees the whole chunk); one stamped later is not."""
     settings = FdiSettings()
     generator = ResidualGenerator(model, settings)
-    from youbot_fdi.fdi.samples import CommandBatch
+    from youbot_fdi.samples import CommandBatch
     commands = CommandBatch(np.array([1.0, 2.0]), np.array([True, True]),
                             np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0]]))
     stamps = np.array([1.0, 1.1, 2.0, 2.01])

@@ -59,7 +59,7 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
     from youbot_fdi.nodes.conversions import event_from_status
     from youbot_fdi.nodes.decision import DecisionNode
     from youbot_fdi.nodes.observer import ObserverNode
-    from youbot_fdi.recordings import DEFAULT_START_STAMP, record_drive
+    from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
 
     record_drive(tmp_path / 'rec', load_model('youbot'), SCRIPT.scaled_to(6.0), fault='stuck',
                  wheel='wheel_joint_br', fault_time=3.5)

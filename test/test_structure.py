@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from youbot_fdi.cli.main import main
-from youbot_fdi.cli.structure import resolve_model
+from youbot_fdi.structure.generate import resolve_model
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError, ModelError
 from youbot_fdi.structure import analyze, Equation, sensor_placement, StructuralModel

@@ -25,6 +25,8 @@ def _candidates():
         pass
     yield Path(sys.prefix) / 'share' / PACKAGE_NAME / 'config'
 
+PROFILE_SUFFIX = '.yaml'
+
 
 def config_dir():
     """The first existing configuration directory (see the module docstring)."""
@@ -35,3 +37,8 @@ def config_dir():
         tried.append(str(candidate))
     msg = f'no youbot_fdi config directory found; tried {tried} (set ${CONFIG_ENV})'
     raise FileNotFoundError(msg)
+
+
+def available_profiles():
+    """Names of the profiles shipped in ``config/profiles``."""
+    return sorted(p.stem for p in (config_dir() / 'profiles').glob('*' + PROFILE_SUFFIX))

@@ -10,16 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS  # noqa: F401 - re-exported defaults
 from youbot_fdi.bag.cdr import JointStateLayout
 from youbot_fdi.errors import FdiError
-from youbot_fdi.fdi.samples import (CommandBatch, CommandSample, JointBatch, JointSample,
+from youbot_fdi.samples import (CommandBatch, CommandSample, JointBatch, JointSample,
                                     message_time, SampleChunk, SampleMapper)
 
 __all__ = ['CommandSample', 'JointSample', 'RecordingError', 'RecordingReader']
 
-JOINT_STATES = '/joint_states'
-WHEEL_COMMANDS = '/wheel_commands'
-CMD_VEL = '/cmd_vel'
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 NANOSECONDS = 1e9
 CHUNK_MESSAGES = 512  # messages decoded and handed on together by chunks()
@@ -132,7 +130,7 @@ class RecordingReader:
                 yield commands.sample(k)
 
     def chunks(self, size=CHUNK_MESSAGES, on_progress=None):
-        """Yield :class:`~youbot_fdi.fdi.samples.SampleChunk` s of up to ``size`` messages.
+        """Yield :class:`~youbot_fdi.samples.SampleChunk` s of up to ``size`` messages.
 
         ``on_progress(messages read, total)`` is called after each chunk. A recording that breaks
         part-way raises :class:`RecordingError` after the chunks read so far have been yielded.

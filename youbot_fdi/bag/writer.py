@@ -3,8 +3,8 @@ from pathlib import Path
 
 import numpy as np
 
-from youbot_fdi.bag.reader import (CMD_VEL, JOINT_STATE_TYPE, JOINT_STATES, NANOSECONDS,
-                                   RecordingError, WHEEL_COMMANDS)
+from youbot_fdi.bag.reader import JOINT_STATE_TYPE, NANOSECONDS, RecordingError
+from youbot_fdi.topics import CMD_VEL, JOINT_STATES, WHEEL_COMMANDS
 
 STORAGES = ('sqlite3', 'mcap')
 SAME = object()  # a message's header stamp is its receive time unless told otherwise

@@ -111,7 +111,7 @@ def random_script(seed, duration):
 def _visible_time(model, script, wheel_index, injected_at, mode='velocity'):
     """When a runaway injected at ``injected_at`` first shows: the wheel's command (speed, or in
     current mode effort) changes by ``RUNAWAY_VISIBLE_CHANGE``."""
-    from youbot_fdi.recordings import effort_for
+    from youbot_fdi.tmcm.recordings import effort_for
     kin = model.kinematics
     ends = np.cumsum([s.duration for s in script.segments])
     speeds = [kin.inverse(s.twist) for s in script.segments] + [np.zeros(kin.n_wheels)]
@@ -152,7 +152,7 @@ def _calibrate(variation, workdir, seed, mode):
     from youbot_fdi.fdi.identify import identify
     from youbot_fdi.fdi.settings import FdiSettings
     from youbot_fdi.model.profile import profile_to_dict
-    from youbot_fdi.recordings import record_drive
+    from youbot_fdi.tmcm.recordings import record_drive
     from youbot_fdi.settings import load_settings
     prior = load_model('youbot')
     plant = true_model(prior, variation)
@@ -171,7 +171,7 @@ def _chain(variation):
 
 def _run_case(case):
     """One recording + replay; returns a result dict (runs in a worker process)."""
-    from youbot_fdi.recordings import DEFAULT_START_STAMP, record_drive
+    from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
     variation, mode, fault, wheel, seed, workdir, params = case
     prior = load_model('youbot')
     plant = true_model(prior, variation)

@@ -57,7 +57,7 @@ def bench_structure():
     """Structural analysis of each shipped model vs importing the toolbox that cross-checks it."""
     import subprocess
     import sys
-    from youbot_fdi.cli.structure import resolve_model
+    from youbot_fdi.structure.generate import resolve_model
     from youbot_fdi.structure.analysis import analyze
     from youbot_fdi.structure.report import placement_summary
     results = []
@@ -150,7 +150,7 @@ def bench_replay(seconds=REPLAY_DRIVE):
     from youbot_fdi.fdi.pipeline import build_pipeline
     from youbot_fdi.model import load_model
     from youbot_fdi.model.scenario import load_script
-    from youbot_fdi.recordings import record_drive
+    from youbot_fdi.tmcm.recordings import record_drive
     model = load_model('youbot')
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
         path = record_drive(Path(tmp) / 'drive', model, load_script(duration=seconds)[1]).path

@@ -1,8 +1,6 @@
 """``youbot-fdi bench``: the project's speed figures, as ratios against same-run baselines."""
 import sys
 
-from youbot_fdi.bench.speed import format_results, run_all
-
 NAME = 'bench'
 
 
@@ -40,6 +38,7 @@ def run(args):
     progress = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
     if args.faults:
         return run_faults(args, progress)
+    from youbot_fdi.bench.speed import format_results, run_all
     print(format_results(run_all(progress=progress)))
     return 0
 

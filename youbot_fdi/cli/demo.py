@@ -1,6 +1,5 @@
 """``youbot-fdi demo``: the main job, live: a virtual youBot, the driver shim and every FDI node."""
 from youbot_fdi.faults import INJECTABLE
-from youbot_fdi.model.scenario import load_script
 
 NAME = 'demo'
 DEFAULT_FAULT = 'torque_loss'
@@ -30,6 +29,7 @@ def add_parser(subparsers):
 
 
 def run(args):
+    from youbot_fdi.model.scenario import load_script
     from youbot_fdi.nodes.demo import DemoPlan, run_demo
     _, script = load_script(args.script, args.duration)
     fault = None if args.fault == NONE else args.fault

@@ -3,6 +3,8 @@
 The topic is latched (transient-local), so the last fault state arrives even if it was published
 before echo started. On a robot ``ros2 topic echo /youbot_fdi/faults`` works too.
 """
+from youbot_fdi.topics import FAULTS
+
 NAME = 'echo'
 
 
@@ -13,7 +15,7 @@ def add_parser(subparsers):
                     'JSON line (the --events format). Stops after --count events or --timeout s.')
     parser.add_argument('--count', type=int, default=0, help='stop after this many events (0: never)')
     parser.add_argument('--timeout', type=float, default=0.0, help='stop after this many seconds (0: never)')
-    parser.add_argument('--topic', default='/youbot_fdi/faults')
+    parser.add_argument('--topic', default=FAULTS)
     parser.set_defaults(run=run)
 
 

@@ -1,13 +1,6 @@
 """``youbot-fdi identify``: model parameters and residual noise floors from a nominal recording."""
 from pathlib import Path
 
-import numpy as np
-import yaml
-
-from youbot_fdi.fdi.identify import identify
-from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.model.profile import load_model, profile_to_dict
-from youbot_fdi.settings import load_settings
 
 NAME = 'identify'
 HEADER = ('# Identified by `youbot-fdi identify`: a parameter profile (config/profiles schema) plus\n'
@@ -31,6 +24,13 @@ def add_parser(subparsers):
 
 
 def run(args):
+    import numpy as np
+    import yaml
+
+    from youbot_fdi.fdi.identify import identify
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model.profile import load_model, profile_to_dict
+    from youbot_fdi.settings import load_settings
     settings = load_settings(FdiSettings, 'fdi')
     result = identify(args.bag, load_model(args.profile), settings, fit_gains=not args.no_gains)
     profile = result.profile

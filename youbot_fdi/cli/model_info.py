@@ -1,8 +1,5 @@
 """``youbot-fdi model``: print a profile's model (kinematics, mass matrix, modes, loop stability)."""
-import numpy as np
-
-from youbot_fdi.model.firmware import sampled_loop_spectral_radius
-from youbot_fdi.model.profile import available_profiles, load_model
+from youbot_fdi.config_paths import available_profiles
 
 NAME = 'model'
 
@@ -19,6 +16,10 @@ def add_parser(subparsers):
 
 
 def run(args):
+    import numpy as np
+
+    from youbot_fdi.model.firmware import sampled_loop_spectral_radius
+    from youbot_fdi.model.profile import load_model
     model = load_model(args.profile)
     dyn = model.dynamics
     np.set_printoptions(precision=5, suppress=False, linewidth=110)

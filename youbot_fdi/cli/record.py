@@ -1,8 +1,5 @@
 """``youbot-fdi record``: record a simulated drive (optionally with a fault) as a rosbag2 recording."""
 from youbot_fdi.faults import INJECTABLE
-from youbot_fdi.model.profile import load_model
-from youbot_fdi.model.scenario import load_script
-from youbot_fdi.recordings import record_drive
 
 NAME = 'record'
 
@@ -27,6 +24,9 @@ def add_parser(subparsers):
 
 
 def run(args):
+    from youbot_fdi.model.profile import load_model
+    from youbot_fdi.model.scenario import load_script
+    from youbot_fdi.tmcm.recordings import record_drive
     _, script = load_script(args.script, args.duration)
     truth = record_drive(args.output, load_model(args.profile), script, mode=args.mode,
                          fault=args.fault, wheel=args.wheel if args.fault else None,

@@ -3,8 +3,7 @@ from pathlib import Path
 import sys
 import time
 
-from youbot_fdi.bag.reader import JOINT_STATES, RecordingError, WHEEL_COMMANDS
-from youbot_fdi.fdi.pipeline import build_pipeline
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 NAME = 'replay'
 PROGRESS_MIN_MESSAGES = 20000  # show a progress bar from this many messages on
@@ -38,6 +37,8 @@ def _progress(done, total, started):
 
 
 def run(args):
+    from youbot_fdi.bag.reader import RecordingError
+    from youbot_fdi.fdi.pipeline import build_pipeline
     model, pipeline = build_pipeline(args.params, args.fdi_config, keep_frames=bool(args.report))
     events_path = Path(args.events)
     events_path.parent.mkdir(parents=True, exist_ok=True)

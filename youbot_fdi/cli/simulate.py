@@ -7,14 +7,6 @@ discretised dynamics, and odometry integrates the resulting wheel angles. No ROS
 from pathlib import Path
 import time
 
-import numpy as np
-
-from youbot_fdi.model.firmware import ControlMode
-from youbot_fdi.model.kinematics import integrate_pose, Odometry
-from youbot_fdi.model.profile import load_model
-from youbot_fdi.model.scenario import load_script
-from youbot_fdi.model.simulation import BaseSimulator
-
 NAME = 'simulate'
 DEFAULT_OUTPUT_DIR = 'out/simulate'
 FIGURE_NAME = 'drive.png'
@@ -45,6 +37,11 @@ def simulate_drive(model, script):
     Keys: ``time`` (k,), ``twist_cmd`` (k, 3), ``wheel_cmd``, ``wheel_speed``, ``current`` (k, n),
     ``pose_cmd``, ``pose_odom`` (k, 3).
     """
+    import numpy as np
+
+    from youbot_fdi.model.firmware import ControlMode
+    from youbot_fdi.model.kinematics import integrate_pose, Odometry
+    from youbot_fdi.model.simulation import BaseSimulator
     simulator = BaseSimulator(model)
     dt = simulator.step_size
     times = np.arange(1, int(round(script.duration / dt)) + 1) * dt
@@ -67,6 +64,7 @@ def simulate_drive(model, script):
 
 def summarise(model, script, run_data, wall_time):
     """The text summary printed by the demo."""
+    import numpy as np
     names = model.wheel_names
     error = run_data['wheel_speed'] - run_data['wheel_cmd']
     lines = [f'youbot-fdi simulate: model simulation, profile {model.profile.name!r}, '
@@ -130,6 +128,8 @@ def plot(model, run_data, path):
 
 
 def run(args):
+    from youbot_fdi.model.profile import load_model
+    from youbot_fdi.model.scenario import load_script
     profile_name, script = load_script(args.script, args.duration)
     model = load_model(args.profile or profile_name)
     started = time.perf_counter()

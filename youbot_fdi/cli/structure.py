@@ -3,17 +3,6 @@ import json
 from pathlib import Path
 import time
 
-import yaml
-
-from youbot_fdi.errors import ConfigError
-from youbot_fdi.model.profile import available_profiles, load_model
-from youbot_fdi.structure.analysis import analyze
-from youbot_fdi.structure.generate import platform_structural_model
-from youbot_fdi.structure.model import (load_structural_model_file, model_from_mapping,
-                                        shipped_structure_files)
-from youbot_fdi.structure.report import (placement_summary, plot_structure_graph,
-                                         residual_file_text, to_dict, to_text)
-
 NAME = 'structure'
 
 
@@ -34,25 +23,11 @@ def add_parser(subparsers):
     parser.set_defaults(run=run)
 
 
-def resolve_model(name):
-    """A structural model by name (shipped data file or parameter profile) or YAML path."""
-    shipped = shipped_structure_files()
-    if name in shipped:
-        return load_structural_model_file(shipped[name])
-    if name in available_profiles():
-        return platform_structural_model(load_model(name))
-    path = Path(name)
-    if path.is_file():
-        data = yaml.safe_load(path.read_text())
-        if isinstance(data, dict) and 'equations' in data:
-            return model_from_mapping(data, str(path))
-        return platform_structural_model(load_model(path))
-    msg = (f'unknown model {name!r}; available: {sorted(set(shipped) | set(available_profiles()))} '
-           'or a YAML path')
-    raise ConfigError(msg)
-
-
 def run(args):
+    from youbot_fdi.structure.analysis import analyze
+    from youbot_fdi.structure.generate import resolve_model
+    from youbot_fdi.structure.report import (placement_summary, plot_structure_graph,
+                                             residual_file_text, to_dict, to_text)
     model = resolve_model(args.model)
     started = time.perf_counter()
     analysis = analyze(model)

@@ -32,10 +32,11 @@ import scipy.optimize
 import scipy.signal
 import scipy.sparse
 
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator
-from youbot_fdi.fdi.samples import CommandBatch, JointBatch
+from youbot_fdi.samples import CommandBatch, JointBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
 
@@ -68,7 +69,7 @@ class RecordingArrays:
     commands: list  # CommandSample list (driver convention, as recorded)
 
 
-def read_arrays(path, model, joint_topic='/joint_states', command_topic='/wheel_commands'):
+def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMANDS):
     """Read a recording into :class:`RecordingArrays`."""
     signs = model.kinematics.drive_signs
     rows, commands = [], []

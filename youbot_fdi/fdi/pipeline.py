@@ -13,7 +13,7 @@ from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator
-from youbot_fdi.fdi.samples import CommandBatch
+from youbot_fdi.samples import CommandBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model, load_profile
 from youbot_fdi.structure.generate import wheel_suffix
@@ -80,7 +80,7 @@ class ReplayResult:
 
 class FdiPipeline:
     """Residuals and decisions for one base, fed a recording's chunks
-    (:class:`~youbot_fdi.fdi.samples.SampleChunk`).
+    (:class:`~youbot_fdi.samples.SampleChunk`).
 
     The residual generator and the decision maker are the objects the live nodes run (one sample
     at a time there, a block at a time here: the same computation).

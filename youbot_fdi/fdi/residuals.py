@@ -35,7 +35,7 @@ import numpy as np
 
 from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, run_lengths,
                                        scalar_recursion)
-from youbot_fdi.fdi.samples import CommandBatch, VELOCITY
+from youbot_fdi.samples import CommandBatch, VELOCITY
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.structure.generate import wheel_suffix
 
@@ -320,7 +320,7 @@ class ResidualGenerator:
 
     # ------------------------------------------------------------------ commands
     def command(self, sample):
-        """Take a /wheel_commands sample (:class:`~youbot_fdi.fdi.samples.CommandSample`)."""
+        """Take a /wheel_commands sample (:class:`~youbot_fdi.samples.CommandSample`)."""
         known = self._known_commands
         keep = max(len(known) + 1 - MAX_PENDING_COMMANDS, 0)
         self._known_commands = CommandBatch(
@@ -559,7 +559,7 @@ class ResidualGenerator:
         return np.exp(-step / self.settings.load_time_constant)
 
     def update(self, sample):
-        """Residuals for one /joint_states sample (:class:`~youbot_fdi.fdi.samples.JointSample`):
+        """Residuals for one /joint_states sample (:class:`~youbot_fdi.samples.JointSample`):
         a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder).
 
         The live nodes' path: the computation of :meth:`update_batch` for one sample, step by step
@@ -626,9 +626,9 @@ class ResidualGenerator:
             position_frozen=self._position_frozen, load_factor=load)
 
     def update_batch(self, joints, commands=None, commands_before=None):
-        """Residuals of a block of /joint_states samples (:class:`~youbot_fdi.fdi.samples.JointBatch`),
+        """Residuals of a block of /joint_states samples (:class:`~youbot_fdi.samples.JointBatch`),
         with the commands that arrived among them (``commands_before[k]`` of ``commands`` came
-        before sample k; see :class:`~youbot_fdi.fdi.samples.SampleChunk`).
+        before sample k; see :class:`~youbot_fdi.samples.SampleChunk`).
 
         Returns a :class:`ResidualBatch` of every sample but those that (re)start the generator:
         the first, and any after a gap longer than ``data_timeout`` or a stamp going backwards.

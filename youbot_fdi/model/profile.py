@@ -39,7 +39,7 @@ from pathlib import Path
 
 import yaml
 
-from youbot_fdi.config_paths import config_dir
+from youbot_fdi.config_paths import available_profiles, config_dir, PROFILE_SUFFIX  # noqa: F401
 from youbot_fdi.errors import ConfigError, ModelError
 from youbot_fdi.model.drive import DriveTrain
 from youbot_fdi.model.dynamics import DynamicParameters, WheelDynamics
@@ -47,7 +47,6 @@ from youbot_fdi.model.firmware import FirmwareParameters, LoopKind
 from youbot_fdi.model.geometry import Platform, Wheel
 from youbot_fdi.model.kinematics import Kinematics
 
-PROFILE_SUFFIX = '.yaml'
 DEFAULT_COULOMB_VELOCITY_SCALE = 0.05  # [rad/s]
 
 
@@ -246,11 +245,6 @@ def parse_profile(data, source='<profile>'):
         identification=_optional_mapping(top, 'identification'))
     top.finish()
     return profile
-
-
-def available_profiles():
-    """Names of the profiles shipped in ``config/profiles``."""
-    return sorted(p.stem for p in (config_dir() / 'profiles').glob('*' + PROFILE_SUFFIX))
 
 
 def profile_path(name_or_path):

@@ -13,6 +13,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 import rclpy
 
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.nodes.common import SENSOR_QOS, shutdown_nodes, stamp_to_seconds, STREAM_QOS
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
@@ -29,8 +30,8 @@ class _Feeder(Node):
         super().__init__('bench_feeder', **kwargs)
         self.samples, self.names, self.index = samples, names, 0
         self.sent = {}
-        self.joint_pub = self.create_publisher(JointState, '/joint_states', STREAM_QOS)
-        self.command_pub = self.create_publisher(JointState, '/wheel_commands', STREAM_QOS)
+        self.joint_pub = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
+        self.command_pub = self.create_publisher(JointState, WHEEL_COMMANDS, STREAM_QOS)
         self.create_timer(1.0 / RATE, self.on_timer)
 
     def on_timer(self):
@@ -51,7 +52,7 @@ class _Relay(Node):
         super().__init__('bench_relay', **kwargs)
         self.done = {}
         self.pub = self.create_publisher(JointState, '/relay', STREAM_QOS)
-        self.create_subscription(JointState, '/joint_states', self.on_msg, SENSOR_QOS)
+        self.create_subscription(JointState, JOINT_STATES, self.on_msg, SENSOR_QOS)
 
     def on_msg(self, msg):
         self.pub.publish(msg)
@@ -99,7 +100,7 @@ def bench_node_suite(seconds=5.0):
     from youbot_fdi.bag.reader import RecordingReader
     from youbot_fdi.model.profile import load_model
     from youbot_fdi.model.scenario import DriveScript, Segment
-    from youbot_fdi.recordings import record_drive
+    from youbot_fdi.tmcm.recordings import record_drive
 
     model = load_model('youbot')
     names = model.wheel_names

@@ -19,7 +19,6 @@ STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          history=HistoryPolicy.KEEP_LAST)
-DIAGNOSTICS_TOPIC = '/diagnostics'
 NAME_PREFIX = 'youbot_fdi'
 
 

@@ -13,11 +13,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
+from youbot_fdi.topics import DIAGNOSTICS, FAULTS, RESIDUALS
 from youbot_fdi.fdi.decision import DecisionMaker, OK
 from youbot_fdi.fdi.pipeline import configure, load_residual_data
 from youbot_fdi.fdi.residuals import ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.nodes.common import (declare_settings, DIAGNOSTICS_TOPIC, LATCHED_QOS, NAME_PREFIX,
+from youbot_fdi.nodes.common import (declare_settings, LATCHED_QOS, NAME_PREFIX,
                                      now_seconds, seconds_to_stamp, SENSOR_QOS, spin_nodes,
                                      stamp_to_seconds)
 from youbot_fdi.nodes.conversions import BASE_COMPONENT, fault_array, LEVELS
@@ -41,9 +42,9 @@ class DecisionNode(Node):
         self.events = []
         self._last_stamp = None
         self._last_arrival = None
-        self.faults_pub = self.create_publisher(DiagnosticArray, '/youbot_fdi/faults', LATCHED_QOS)
-        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self.create_subscription(JointState, '/youbot_fdi/residuals', self.on_residuals, SENSOR_QOS)
+        self.faults_pub = self.create_publisher(DiagnosticArray, FAULTS, LATCHED_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, 10)
+        self.create_subscription(JointState, RESIDUALS, self.on_residuals, SENSOR_QOS)
         self.create_timer(1.0 / rate, self.publish_diagnostics)
         self.create_timer(STALL_CHECK_PERIOD, self.check_stall)
 

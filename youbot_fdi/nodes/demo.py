@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 import rclpy
 
+from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes
 from youbot_fdi.nodes.composed import FDI_NODES
 from youbot_fdi.nodes.conversions import event_from_status
@@ -51,9 +52,9 @@ class DemoDriverNode(Node):
     def __init__(self, plan, base, **kwargs):
         super().__init__('demo_driver', **kwargs)
         self.plan, self.base = plan, base
-        self.cmd_pub = self.create_publisher(Twist, '/cmd_vel', 10)
-        self.create_subscription(DiagnosticArray, '/youbot_fdi/faults', self.on_faults, LATCHED_QOS)
-        self.create_subscription(JointState, '/joint_states', self.on_joint_states, SENSOR_QOS)
+        self.cmd_pub = self.create_publisher(Twist, CMD_VEL, 10)
+        self.create_subscription(DiagnosticArray, FAULTS, self.on_faults, LATCHED_QOS)
+        self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
         self.events, self.injected_at, self.last_state = [], None, None
         self.start = None
         self.recorder = None
@@ -62,7 +63,7 @@ class DemoDriverNode(Node):
             from youbot_fdi.nodes.common import stamp_to_seconds
             self._stamp = stamp_to_seconds
             self.recorder = RecordingWriter(plan.record, base.model.wheel_names)
-            self.create_subscription(JointState, '/wheel_commands', self.on_wheel_commands, 10)
+            self.create_subscription(JointState, WHEEL_COMMANDS, self.on_wheel_commands, 10)
         self.done = False
         self._next_status = 0.0
         self.create_timer(1.0 / COMMAND_RATE, self.on_timer)

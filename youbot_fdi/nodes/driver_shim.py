@@ -16,8 +16,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
+from youbot_fdi.topics import DIAGNOSTICS, JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.model.profile import load_model
-from youbot_fdi.nodes.common import (declare_settings, DIAGNOSTICS_TOPIC, health_to_diagnostics,
+from youbot_fdi.nodes.common import (declare_settings, health_to_diagnostics,
                                      now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
                                      STREAM_QOS)
 from youbot_fdi.tmcm.driver import BaseDriver, CommandKind, DriverSettings
@@ -39,9 +40,9 @@ class DriverShimNode(Node):
         bus = open_bus(self.settings.can_interface, self.settings.can_channel)
         self.driver = BaseDriver(self.model, bus, self.settings, clock=lambda: now_seconds(self),
                                  owns_bus=True)
-        self.joint_pub = self.create_publisher(JointState, '/joint_states', STREAM_QOS)
-        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self.create_subscription(JointState, '/wheel_commands', self.on_command, SENSOR_QOS)
+        self.joint_pub = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, 10)
+        self.create_subscription(JointState, WHEEL_COMMANDS, self.on_command, SENSOR_QOS)
         self.create_service(Trigger, '~/switch_on_motors', self.on_switch_on)
         self.create_service(Trigger, '~/switch_off_motors', self.on_switch_off)
         self._last_stamp = None

@@ -6,11 +6,12 @@ from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
 from rclpy.node import Node
 
+from youbot_fdi.topics import FAULTS
 from youbot_fdi.nodes.common import LATCHED_QOS
 from youbot_fdi.nodes.conversions import event_from_status
 
 
-def echo_faults(topic='/youbot_fdi/faults', count=0, timeout=0.0, write=print):
+def echo_faults(topic=FAULTS, count=0, timeout=0.0, write=print):
     """Subscribe (latched) and write each event; stop after ``count`` events or ``timeout`` [s]."""
     rclpy.init()
     node = Node('youbot_fdi_echo')

@@ -12,7 +12,8 @@ from nav_msgs.msg import Odometry as OdometryMsg
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from youbot_fdi.fdi.samples import SampleMapper
+from youbot_fdi.topics import CMD_VEL, JOINT_STATES, ODOM, WHEEL_COMMANDS
+from youbot_fdi.samples import SampleMapper
 from youbot_fdi.model.kinematics import Odometry
 from youbot_fdi.model.profile import load_model
 from youbot_fdi.nodes.common import (now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
@@ -36,10 +37,10 @@ class KinematicsBridgeNode(Node):
         self.mapper = SampleMapper(self.model.wheel_names)
         self.odometry = Odometry(self.kinematics)
         self._last_stamp = None
-        self.command_pub = self.create_publisher(JointState, '/wheel_commands', STREAM_QOS)
-        self.odom_pub = self.create_publisher(OdometryMsg, '/odom', STREAM_QOS)
-        self.create_subscription(Twist, '/cmd_vel', self.on_cmd_vel, 10)
-        self.create_subscription(JointState, '/joint_states', self.on_joint_states, SENSOR_QOS)
+        self.command_pub = self.create_publisher(JointState, WHEEL_COMMANDS, STREAM_QOS)
+        self.odom_pub = self.create_publisher(OdometryMsg, ODOM, STREAM_QOS)
+        self.create_subscription(Twist, CMD_VEL, self.on_cmd_vel, 10)
+        self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
 
     def on_cmd_vel(self, msg):
         twist = (msg.linear.x, msg.linear.y, msg.angular.z)

@@ -14,9 +14,10 @@ import sys
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
+from youbot_fdi.topics import JOINT_STATES, PREDICTED, RESIDUALS, WHEEL_COMMANDS
 from youbot_fdi.fdi.pipeline import configure
 from youbot_fdi.fdi.residuals import ResidualGenerator
-from youbot_fdi.fdi.samples import message_time, SampleMapper
+from youbot_fdi.samples import message_time, SampleMapper
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, now_seconds, SENSOR_QOS, spin_nodes,
                                      stamp_to_seconds, STREAM_QOS)
@@ -35,10 +36,10 @@ class ObserverNode(Node):
         self.names = self.model.wheel_names
         self.generator = ResidualGenerator(self.model, self.settings)
         self.mapper = SampleMapper(self.names)
-        self.predicted_pub = self.create_publisher(JointState, '/youbot_fdi/predicted', STREAM_QOS)
-        self.residual_pub = self.create_publisher(JointState, '/youbot_fdi/residuals', STREAM_QOS)
-        self.create_subscription(JointState, '/wheel_commands', self.on_command, SENSOR_QOS)
-        self.create_subscription(JointState, '/joint_states', self.on_joint_states, SENSOR_QOS)
+        self.predicted_pub = self.create_publisher(JointState, PREDICTED, STREAM_QOS)
+        self.residual_pub = self.create_publisher(JointState, RESIDUALS, STREAM_QOS)
+        self.create_subscription(JointState, WHEEL_COMMANDS, self.on_command, SENSOR_QOS)
+        self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
 
     def on_command(self, msg):
         stamp = float(message_time(stamp_to_seconds(msg.header.stamp), now_seconds(self)))

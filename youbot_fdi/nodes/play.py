@@ -9,6 +9,7 @@ import rclpy
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
+from youbot_fdi.topics import CLOCK
 from youbot_fdi.bag.reader import NANOSECONDS, RecordingError
 from youbot_fdi.nodes.common import seconds_to_stamp, STREAM_QOS
 
@@ -42,7 +43,7 @@ def play(path, rate=1.0, clock=True, topics=None, progress=None):
                        and (not topics or c.topic in topics)]
         publishers = {c.id: node.create_publisher(_message_class(c.msgtype), c.topic, STREAM_QOS)
                       for c in connections}
-        clock_pub = node.create_publisher(Clock, '/clock', 10) if clock else None
+        clock_pub = node.create_publisher(Clock, CLOCK, 10) if clock else None
         time.sleep(0.5)  # let subscribers discover the publishers
         start_wall, start_bag = time.monotonic(), None
         for connection, timestamp, raw in reader.messages(connections=connections):

@@ -28,9 +28,16 @@ that sensors on the base can be considered. Known: the motor currents ``i_<w>`` 
 speeds ``y_<w>``. Which ``ddtheta_j`` enter ``dyn_<w>`` follows the non-zero pattern of the
 platform's mass matrix M: dense for the youBot.
 """
-import numpy as np
+from pathlib import Path
 
-from youbot_fdi.structure.model import Equation, StructuralModel
+import numpy as np
+import yaml
+
+from youbot_fdi.config_paths import available_profiles
+from youbot_fdi.errors import ConfigError
+from youbot_fdi.model.profile import load_model
+from youbot_fdi.structure.model import (Equation, load_structural_model_file, model_from_mapping,
+                                        shipped_structure_files, StructuralModel)
 
 WHEEL_PREFIX = 'wheel_joint_'
 #: Entries of M or F below this fraction of the largest are structural zeros [-].
@@ -101,3 +108,21 @@ def platform_structural_model(platform_model, name=None):
                      'M theta_ddot + D theta_dot = tau with tau = k_t/gear i, measured wheel speeds '
                      'and motor currents.'),
         reference={'sensor_candidates': candidates, 'residuals': residuals})
+
+
+def resolve_model(name):
+    """A structural model by name (shipped data file or parameter profile) or YAML path."""
+    shipped = shipped_structure_files()
+    if name in shipped:
+        return load_structural_model_file(shipped[name])
+    if name in available_profiles():
+        return platform_structural_model(load_model(name))
+    path = Path(name)
+    if path.is_file():
+        data = yaml.safe_load(path.read_text())
+        if isinstance(data, dict) and 'equations' in data:
+            return model_from_mapping(data, str(path))
+        return platform_structural_model(load_model(path))
+    msg = (f'unknown model {name!r}; available: {sorted(set(shipped) | set(available_profiles()))} '
+           'or a YAML path')
+    raise ConfigError(msg)
