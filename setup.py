@@ -20,7 +20,8 @@ EXTRAS = {
     'plot': ['matplotlib>=3.6'],
     # Cross-check of our own structural analysis; heavy (sympy, scikit-learn): never on the robot path.
     'structure': ['faultdiagnosistoolbox>=0.12'],
-    'test': ['pytest>=7', 'hypothesis>=6', 'colcon-common-extensions'],
+    # pytrinamic: Trinamic's own TMCL client, driven against the virtual youBot in the tests.
+    'test': ['pytest>=7', 'hypothesis>=6', 'colcon-common-extensions', 'pytrinamic>=0.2.26'],
 }
 EXTRAS['all'] = sorted({req for reqs in EXTRAS.values() for req in reqs})
 

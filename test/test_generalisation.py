@@ -189,6 +189,20 @@ def test_one_wheel_departing_from_the_others_still_alarms(tmp_path, calibrated):
     assert alarms and alarms[0].wheel == 'wheel_joint_bl' and alarms[0].stamp >= start + 3.0
 
 
+def test_a_second_wheel_failing_later_is_not_shared_with_the_first(tmp_path, model):
+    """A wheel in alarm since long ago does not make a later fault on another wheel a "shared"
+    change (half the wheels of four): both are found, each on its wheel."""
+    from youbot_fdi.model.scenario import load_script
+    from youbot_fdi.tmcm.recordings import record_drive
+    truth = record_drive(tmp_path / 'two', model, load_script(duration=12.0)[1], fault='friction',
+                         wheel='wheel_joint_fl', fault_time=1.0,
+                         more_faults=[('stuck', 'wheel_joint_br', 6.0)])
+    alarms = errors(tmp_path / 'two', None)
+    first = {w: min(e.stamp for e in alarms if e.wheel == w) for w in {e.wheel for e in alarms}}
+    assert set(first) == {'wheel_joint_fl', 'wheel_joint_br'}
+    assert first['wheel_joint_br'] >= truth.onset + 5.0 > first['wheel_joint_fl'] >= truth.onset
+
+
 def test_the_load_factor_is_the_part_every_wheel_shares(model):
     generator = ResidualGenerator(model, FdiSettings(torque_sigma=0.01))
     friction = np.array([0.2, 0.2, 0.2, 0.2])

@@ -137,20 +137,32 @@ def test_tmcl_parameters_like_a_trinamic_tool(rig):
     assert bytes(version.data) == b'1632V200'
 
 
-def test_tmcl_motion_commands_drive_a_module(rig):
-    assert tmcl(rig, TmclRequest(0x14, TmclCommand.ROR, 0, 0, 1000)).ok
+MODULES = {0x11: 'wheel_joint_fl', 0x12: 'wheel_joint_fr', 0x13: 'wheel_joint_bl',
+           0x14: 'wheel_joint_br'}  # TMCL module address -> wheel (both drive signs)
+
+
+@pytest.mark.parametrize('address', sorted(MODULES))
+def test_tmcl_motion_commands_drive_every_module(rig, address):
+    """ROR/ROL/MST and a relative MVP on each module, whatever its drive sign: the module's own
+    velocity and position (driver convention) do what TMCL asked."""
+    wheel = MODULES[address]
+    assert tmcl(rig, TmclRequest(address, TmclCommand.ROR, 0, 0, 1000)).ok
     rig.base.advance(1.0)
-    assert rig.base.status('wheel_joint_br').velocity == pytest.approx(1000, abs=3)
-    assert tmcl(rig, TmclRequest(0x14, TmclCommand.ROL, 0, 0, 500)).ok
+    assert rig.base.status(wheel).velocity == pytest.approx(1000, abs=3)
+    assert tmcl(rig, TmclRequest(address, TmclCommand.ROL, 0, 0, 500)).ok
     rig.base.advance(1.0)
-    assert rig.base.status('wheel_joint_br').velocity == pytest.approx(-500, abs=3)
-    assert tmcl(rig, TmclRequest(0x14, TmclCommand.MST, 0, 0, 0)).ok
+    assert rig.base.status(wheel).velocity == pytest.approx(-500, abs=3)
+    assert tmcl(rig, TmclRequest(address, TmclCommand.MST, 0, 0, 0)).ok
     rig.base.advance(1.0)
-    assert abs(rig.base.status('wheel_joint_br').velocity) <= 2
-    start = rig.base.status('wheel_joint_br').position
-    assert tmcl(rig, TmclRequest(0x14, TmclCommand.MVP, 1, 0, 20000)).ok  # relative move
+    assert abs(rig.base.status(wheel).velocity) <= 2
+    start = rig.base.status(wheel).position
+    assert tmcl(rig, TmclRequest(address, TmclCommand.MVP, 1, 0, 20000)).ok  # relative move
     rig.base.advance(3.0)
-    assert rig.base.status('wheel_joint_br').position == pytest.approx(start + 20000, abs=50)
+    assert rig.base.status(wheel).position == pytest.approx(start + 20000, abs=50)
+    assert abs(rig.base.status(wheel).velocity) <= 20
+    assert tmcl(rig, TmclRequest(address, TmclCommand.MVP, 0, 0, start - 5000)).ok  # absolute move
+    rig.base.advance(3.0)
+    assert rig.base.status(wheel).position == pytest.approx(start - 5000, abs=50)
 
 
 # ---- faults: each shows in the driver's samples as it would on a robot ----

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS  # noqa: F401 - re-exported defaults
 from youbot_fdi.bag.cdr import JointStateLayout
 from youbot_fdi.errors import FdiError
 from youbot_fdi.samples import (CommandBatch, CommandSample, JointBatch, JointSample,
-                                    message_time, SampleChunk, SampleMapper)
+                                message_time, SampleChunk, SampleMapper)
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS  # noqa: F401 - re-exported defaults
 
 __all__ = ['CommandSample', 'JointSample', 'RecordingError', 'RecordingReader']
 

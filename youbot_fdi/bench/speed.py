@@ -137,33 +137,97 @@ def bench_nodes(seconds=5.0):
                         'ms', 'relay p99', np.percentile(relay_latency, 99) * 1000)]
 
 
-REPLAY_DRIVE = 30.0  # [s] of the demo script recorded for the replay case
+REPLAY_DRIVE = 60.0  # [s] of aggressive driving per replay case, 100 Hz
 REPLAY_REPEATS = 3  # best of
+REPLAY_TARGET = 1.5  # replay <= this x decode-only (issue 14)
+START_REPEATS = 5  # best of, for the command line's start time
+START_TARGET = 2.0  # `youbot-fdi --help` <= this x `python -c "import numpy"`
+REPLAY_WHEELS = ('wheel_joint_fl', 'wheel_joint_br')  # the faulty wheels of the fault cases
 
 
-def bench_replay(seconds=REPLAY_DRIVE):
-    """Replay (the batched FDI) and the live path (one sample at a time) against merely decoding
-    the same recording with rosbags; best of ``REPLAY_REPEATS`` each."""
+def _best_time(function, repeats=REPLAY_REPEATS):
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - started)
+    return min(times)
+
+
+def _replay_recordings(workdir, progress, seconds):
+    """The replay cases' recordings of one plant unlike the default profile (the fault
+    benchmark's first random variation), and its parameter file identified from the fault-free
+    one: {case: (recording, parameter file or None)}."""
+    import yaml
+    from youbot_fdi.bench.simulated import _chain, make_variations, random_script, true_model
+    from youbot_fdi.fdi.identify import identify
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model import load_model
+    from youbot_fdi.model.profile import profile_to_dict
+    from youbot_fdi.settings import load_settings
+    from youbot_fdi.tmcm.recordings import record_drive
+    variation = make_variations(2)[1]
+    prior = load_model('youbot')
+    plant, script = true_model(prior, variation), random_script(variation.index, seconds)
+    first, second = REPLAY_WHEELS
+    faults = {'fault-free': {}, 'fault-free, mcap': {'storage': 'mcap'},
+              'a fault at 10 %': {'fault': 'torque_loss', 'wheel': first,
+                                  'fault_time': 0.1 * seconds},
+              'faults on two wheels': {'fault': 'friction', 'wheel': first,
+                                       'fault_time': 0.1 * seconds,
+                                       'more_faults': [('stuck', second, 0.5 * seconds)]}}
+    paths = {}
+    for name, fault in faults.items():
+        progress(f'  recording {seconds:g} s: {name}')
+        paths[name] = record_drive(workdir / name.replace(' ', '_').replace(',', '').replace('%', 'pc'),
+                                   plant, script, **fault, **_chain(variation)).path
+    progress('  identifying the plant from the fault-free recording')
+    params = workdir / 'params.yaml'
+    result = identify(paths['fault-free'], prior, load_settings(FdiSettings, 'fdi'))
+    params.write_text(yaml.safe_dump(profile_to_dict(result.profile), sort_keys=False))
+    cases = {name: (path, params) for name, path in paths.items()}
+    cases['fault-free, no --params'] = (paths['fault-free'], None)
+    return cases
+
+
+def bench_replay(progress=print, seconds=REPLAY_DRIVE):
+    """Replay (the batched FDI) against merely decoding the same recording with rosbags, for
+    every case of issue 14 (identified or not, faults early and on two wheels, both storage
+    formats), and the live path (one sample at a time); best of ``REPLAY_REPEATS`` each."""
     import tempfile
     from pathlib import Path
     from youbot_fdi.bag.reader import RecordingReader
     from youbot_fdi.fdi.pipeline import build_pipeline
-    from youbot_fdi.model import load_model
-    from youbot_fdi.model.scenario import load_script
-    from youbot_fdi.tmcm.recordings import record_drive
-    model = load_model('youbot')
+    results = []
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
-        path = record_drive(Path(tmp) / 'drive', model, load_script(duration=seconds)[1]).path
+        cases = _replay_recordings(Path(tmp), progress, seconds)
+        for name, (path, params) in cases.items():
+            model, _ = build_pipeline(params)
 
-        def decode():
+            def decode():
+                with RecordingReader(path, model.wheel_names) as reader:
+                    reader.decode_only()
+
+            events = []
+
+            def replay():
+                events.clear()
+                build_pipeline(params)[1].replay(path, on_event=events.append)
+
+            decoded, replayed = _best_time(decode), _best_time(replay)
+            alarms = sorted({e.wheel for e in events if e.level == 'ERROR'}, key=str)
             with RecordingReader(path, model.wheel_names) as reader:
-                reader.decode_only()
-
-        def replay():
-            build_pipeline()[1].replay(path)
+                messages = reader.message_count
+            results.append(BenchResult(f'replay: {name}', replayed, 's', 'rosbags decode-only',
+                                       decoded, f'{messages} messages, alarms on '
+                                       f'{", ".join(map(str, alarms)) or "none"}; '
+                                       f'target <= {REPLAY_TARGET:g}x'))
+        path, params = cases['fault-free']
+        model, _ = build_pipeline(params)
+        replayed = results[0].value
 
         def live():
-            _, pipeline = build_pipeline()
+            _, pipeline = build_pipeline(params)
             generator, decision = pipeline.generator, pipeline.decision
             with RecordingReader(path, model.wheel_names) as reader:
                 for sample in reader.samples():
@@ -174,31 +238,36 @@ def bench_replay(seconds=REPLAY_DRIVE):
                         if frame is not None:
                             decision.update(frame)
 
-        best = {}
-        for name, function in (('decode', decode), ('replay', replay), ('live', live)):
-            times = []
-            for _ in range(REPLAY_REPEATS):
-                started = time.perf_counter()
-                function()
-                times.append(time.perf_counter() - started)
-            best[name] = min(times)
         with RecordingReader(path, model.wheel_names) as reader:
-            messages = reader.message_count
             samples = sum(c.msgcount for c in reader.connections if c.topic == reader.joint_topic)
-    per_sample = 1e6 / samples  # [µs/s] per /joint_states sample (with its share of commands)
-    return [BenchResult('replay: a recording, batched', best['replay'], 's',
-                        'rosbags decode-only', best['decode'],
-                        f'{messages} messages; target <= 1.5x'),
-            BenchResult('live path: one sample at a time', best['live'] * per_sample, 'us/sample',
-                        'replay per sample', best['replay'] * per_sample,
-                        'generator + decision, as the nodes call them')]
+        per_sample = 1e6 / samples  # [µs/s] per /joint_states sample (with its share of commands)
+        results.append(BenchResult('live path: one sample at a time', _best_time(live) * per_sample,
+                                   'us/sample', 'replay per sample', replayed * per_sample,
+                                   'generator + decision, as the nodes call them'))
+    return results
+
+
+def bench_start():
+    """``youbot-fdi --help`` (a fresh interpreter) against ``python -c "import numpy"``."""
+    import subprocess
+    import sys
+
+    def run(code):
+        return lambda: subprocess.run([sys.executable, '-c', code], check=True,
+                                      stdout=subprocess.DEVNULL)
+    command = _best_time(run('import sys; from youbot_fdi.cli.main import main; '
+                             'sys.argv[0] = "youbot-fdi"; main(["--help"])'), START_REPEATS)
+    numpy = _best_time(run('import numpy'), START_REPEATS)
+    return BenchResult('command line: youbot-fdi --help', command, 's', 'python -c "import numpy"',
+                       numpy, f'a fresh interpreter each; target <= {START_TARGET:g}x')
 
 
 def run_all(progress=print):
     """Run every case; returns the results."""
     results = []
     for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can),
-                        ('replay', bench_replay), ('nodes', bench_nodes)):
+                        ('start', bench_start), ('replay', lambda: bench_replay(progress)),
+                        ('nodes', bench_nodes)):
         progress(f'running {label} ...')
         outcome = case()
         results.extend(outcome if isinstance(outcome, list) else [outcome])

@@ -5,7 +5,8 @@
    ``g >= evidence_threshold`` and clears after ``release`` excited samples below it. A small
    persistent excess is found (it adds up), a single spike is not an alarm (it is capped and
    drains away). Torque and command-path evidence on half the wheels or more at once (half the
-   threshold each) is a change they share, not a wheel fault. A position reading that repeats
+   threshold each, rising within ``shared_window`` of each other) is a change they share, not a
+   wheel fault; a wheel already in alarm for longer does not make a later one "shared". A position reading that repeats
    exactly while the wheel is commanded and measured to turn is direct evidence of a frozen
    sensor (``frozen_samples`` in a row), at any rate.
 2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
@@ -43,6 +44,7 @@ TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'en
 #: Families judged against the other wheels, and the share of the threshold that counts as evidence.
 SHARED_FAMILIES = [TORQUE, COMMAND]
 SHARED_SHARE = 0.5
+NEVER = -1e300  # [s] the stamp of a rise that has not happened (finite: differences stay defined)
 LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
 MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name comm_loss, not a freeze
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
@@ -105,6 +107,7 @@ class DecisionMaker:
         self.signatures = self._signatures(residual_data)
         shape = (len(FAMILIES), self.n)
         self._evidence = np.zeros(shape)
+        self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
         self._below = np.zeros(shape, dtype=int)
         self.load_level = OK  # of the load condition (OK or WARN)
         self.alarm = np.zeros(shape, dtype=bool)
@@ -161,22 +164,21 @@ class DecisionMaker:
         self._evidence = g[-1]
         return g
 
-    def _alarms(self, z, excited):
-        """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n) and
-        ``excited`` (N, n), continuing the counters; leaves the state after the last row.
+    def _alarms(self, z, excited, stamps):
+        """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n),
+        ``excited`` (N, n) and stamps (N,) [s], continuing the counters; leaves the state after the
+        last row.
 
         Sequentially: an alarm is set while the evidence is at the threshold, cleared once
         ``below`` (excited rows since it last was) reaches ``release``, and otherwise kept. So the
         alarm after row k is decided by the latest row that set or cleared it.
         """
         threshold = self.settings.evidence_threshold
+        before = self._evidence
         evidence = self.evidence(z)
         over = evidence >= threshold
-        # Judged against the others: evidence on half the wheels or more at once is a change they
-        # share (surface, load, timing), not a wheel fault, until the load factor has caught up.
-        shared = (np.count_nonzero(evidence[:, SHARED_FAMILIES] >= SHARED_SHARE * threshold, axis=-1)
-                  * 2 >= self.n)
-        over[:, SHARED_FAMILIES] &= ~shared[..., None]
+        over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES],
+                                                 evidence[:, SHARED_FAMILIES], stamps)
         rows = len(over)
         if rows == 1:  # the same latch, one row (the live path)
             self._below = np.where(over[0], 0, self._below + excited[0])
@@ -191,6 +193,21 @@ class DecisionMaker:
         alarm = np.where(last_set > last_clear, True, np.where(last_clear > last_set, False, self.alarm))
         self._below, self.alarm = below[-1], alarm[-1]
         return alarm
+
+    def _shared(self, before, evidence, stamps):
+        """Rows x families x wheels (N, f, n) whose evidence is shared: it rose to
+        ``SHARED_SHARE`` of the threshold within ``shared_window`` of the rise on at least half the
+        wheels, which are still there (a surface, load or timing change they share, until the load
+        factor has caught up). ``before`` (f, n) is the evidence before the first row."""
+        level = SHARED_SHARE * self.settings.evidence_threshold
+        up = evidence >= level
+        was_up = np.concatenate([(before >= level)[None], up[:-1]])
+        rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
+        rise = np.maximum(np.maximum.accumulate(rise, axis=0), self._rise[SHARED_FAMILIES])
+        self._rise[SHARED_FAMILIES] = rise[-1]
+        together = (up[..., None, :]
+                    & (np.abs(rise[..., :, None] - rise[..., None, :]) <= self.settings.shared_window))
+        return np.count_nonzero(together, axis=-1) * 2 >= self.n
 
     def _load_events(self, stamps, factors):
         """WARN/OK events of the load condition over rows (stamps (N,), load factors (N,))."""
@@ -346,7 +363,8 @@ class DecisionMaker:
     def update(self, frame):
         """Process one residual frame; returns the fault events it causes (usually none)."""
         z = frame.scores()
-        alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None])
+        alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None],
+                             [frame.stamp])
         self.samples += 1
         self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
                        np.array([frame.stamp]))
@@ -369,7 +387,7 @@ class DecisionMaker:
         if not rows:
             return []
         z = batch.scores()
-        alarm = self._alarms(z, self._excited(batch.velocity, batch.torque))
+        alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp)
         capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen))
         frozen = self.settings.frozen_samples
         flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,

@@ -32,13 +32,13 @@ import scipy.optimize
 import scipy.signal
 import scipy.sparse
 
-from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator
-from youbot_fdi.samples import CommandBatch, JointBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
+from youbot_fdi.samples import CommandBatch, JointBatch
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 SAVGOL_WINDOW = 9  # samples
 SAVGOL_ORDER = 2

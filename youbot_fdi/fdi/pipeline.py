@@ -13,11 +13,11 @@ from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator
-from youbot_fdi.samples import CommandBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model, load_profile
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.samples import CommandBatch
 from youbot_fdi.settings import load_settings, settings_from_mapping
+from youbot_fdi.structure.generate import wheel_suffix
 
 DEFAULT_RESIDUAL_MODEL = 'youbot'
 

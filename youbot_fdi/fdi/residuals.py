@@ -35,8 +35,8 @@ import numpy as np
 
 from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, run_lengths,
                                        scalar_recursion)
-from youbot_fdi.samples import CommandBatch, VELOCITY
 from youbot_fdi.model.dynamics import zoh_discretize
+from youbot_fdi.samples import CommandBatch, VELOCITY
 from youbot_fdi.structure.generate import wheel_suffix
 
 FAMILIES = ('torque', 'observer', 'command', 'encoder')

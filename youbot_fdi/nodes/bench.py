@@ -13,12 +13,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.nodes.common import SENSOR_QOS, shutdown_nodes, stamp_to_seconds, STREAM_QOS
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.nodes.kinematics_bridge import KinematicsBridgeNode
 from youbot_fdi.nodes.observer import ObserverNode
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 RATE = 100.0  # [Hz]
 

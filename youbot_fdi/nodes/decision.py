@@ -13,7 +13,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from youbot_fdi.topics import DIAGNOSTICS, FAULTS, RESIDUALS
 from youbot_fdi.fdi.decision import DecisionMaker, OK
 from youbot_fdi.fdi.pipeline import configure, load_residual_data
 from youbot_fdi.fdi.residuals import ResidualFrame
@@ -22,6 +21,7 @@ from youbot_fdi.nodes.common import (declare_settings, LATCHED_QOS, NAME_PREFIX,
                                      now_seconds, seconds_to_stamp, SENSOR_QOS, spin_nodes,
                                      stamp_to_seconds)
 from youbot_fdi.nodes.conversions import BASE_COMPONENT, fault_array, LEVELS
+from youbot_fdi.topics import DIAGNOSTICS, FAULTS, RESIDUALS
 
 NODE_NAME = 'decision'
 STALL_CHECK_PERIOD = 0.05  # [s]
@@ -43,7 +43,7 @@ class DecisionNode(Node):
         self._last_stamp = None
         self._last_arrival = None
         self.faults_pub = self.create_publisher(DiagnosticArray, FAULTS, LATCHED_QOS)
-        self.diag_pub = self.create_publisher(DiagnosticArray, 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
         self.create_subscription(JointState, RESIDUALS, self.on_residuals, SENSOR_QOS)
         self.create_timer(1.0 / rate, self.publish_diagnostics)
         self.create_timer(STALL_CHECK_PERIOD, self.check_stall)

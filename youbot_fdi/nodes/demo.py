@@ -21,13 +21,13 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes
 from youbot_fdi.nodes.composed import FDI_NODES
 from youbot_fdi.nodes.conversions import event_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
 from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, WHEEL_COMMANDS
 
 COMMAND_RATE = 20.0  # /cmd_vel [Hz]
 STATUS_PERIOD = 1.0  # console line [s]

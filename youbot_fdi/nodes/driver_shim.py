@@ -16,13 +16,13 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from youbot_fdi.topics import DIAGNOSTICS, JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.model.profile import load_model
 from youbot_fdi.nodes.common import (declare_settings, health_to_diagnostics,
                                      now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
                                      STREAM_QOS)
 from youbot_fdi.tmcm.driver import BaseDriver, CommandKind, DriverSettings
 from youbot_fdi.tmcm.transport import open_bus
+from youbot_fdi.topics import DIAGNOSTICS, JOINT_STATES, WHEEL_COMMANDS
 
 NODE_NAME = 'driver_shim'
 
@@ -41,7 +41,7 @@ class DriverShimNode(Node):
         self.driver = BaseDriver(self.model, bus, self.settings, clock=lambda: now_seconds(self),
                                  owns_bus=True)
         self.joint_pub = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
-        self.diag_pub = self.create_publisher(DiagnosticArray, 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
         self.create_subscription(JointState, WHEEL_COMMANDS, self.on_command, SENSOR_QOS)
         self.create_service(Trigger, '~/switch_on_motors', self.on_switch_on)
         self.create_service(Trigger, '~/switch_off_motors', self.on_switch_off)

@@ -6,9 +6,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
 from rclpy.node import Node
 
-from youbot_fdi.topics import FAULTS
 from youbot_fdi.nodes.common import LATCHED_QOS
 from youbot_fdi.nodes.conversions import event_from_status
+from youbot_fdi.topics import FAULTS
 
 
 def echo_faults(topic=FAULTS, count=0, timeout=0.0, write=print):

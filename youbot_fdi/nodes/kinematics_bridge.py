@@ -12,13 +12,13 @@ from nav_msgs.msg import Odometry as OdometryMsg
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from youbot_fdi.topics import CMD_VEL, JOINT_STATES, ODOM, WHEEL_COMMANDS
-from youbot_fdi.samples import SampleMapper
 from youbot_fdi.model.kinematics import Odometry
 from youbot_fdi.model.profile import load_model
 from youbot_fdi.nodes.common import (now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
                                      stamp_to_seconds, STREAM_QOS)
 from youbot_fdi.nodes.conversions import joint_state
+from youbot_fdi.samples import SampleMapper
+from youbot_fdi.topics import CMD_VEL, JOINT_STATES, ODOM, WHEEL_COMMANDS
 
 NODE_NAME = 'kinematics_bridge'
 

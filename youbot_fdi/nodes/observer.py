@@ -14,14 +14,14 @@ import sys
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from youbot_fdi.topics import JOINT_STATES, PREDICTED, RESIDUALS, WHEEL_COMMANDS
 from youbot_fdi.fdi.pipeline import configure
 from youbot_fdi.fdi.residuals import ResidualGenerator
-from youbot_fdi.samples import message_time, SampleMapper
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, now_seconds, SENSOR_QOS, spin_nodes,
                                      stamp_to_seconds, STREAM_QOS)
 from youbot_fdi.nodes.conversions import joint_state, labelled_vector
+from youbot_fdi.samples import message_time, SampleMapper
+from youbot_fdi.topics import JOINT_STATES, PREDICTED, RESIDUALS, WHEEL_COMMANDS
 
 NODE_NAME = 'observer'
 

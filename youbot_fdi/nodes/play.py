@@ -9,9 +9,9 @@ import rclpy
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from youbot_fdi.topics import CLOCK
 from youbot_fdi.bag.reader import NANOSECONDS, RecordingError
 from youbot_fdi.nodes.common import seconds_to_stamp, STREAM_QOS
+from youbot_fdi.topics import CLOCK
 
 MESSAGE_TYPES = {
     'sensor_msgs/msg/JointState': ('sensor_msgs.msg', 'JointState'),

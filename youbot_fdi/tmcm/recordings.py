@@ -36,7 +36,8 @@ def effort_for(model, wheel_speed):
 
 
 def record_drive(path, model, script, mode='velocity', fault=None, wheel=None, fault_time=None,
-                 storage='sqlite3', cycle=0.01, start_stamp=DEFAULT_START_STAMP, **base_settings):
+                 storage='sqlite3', cycle=0.01, start_stamp=DEFAULT_START_STAMP, more_faults=(),
+                 **base_settings):
     """Drive ``script`` on a virtual base and record it.
 
     Parameters
@@ -49,6 +50,8 @@ def record_drive(path, model, script, mode='velocity', fault=None, wheel=None, f
         ``velocity`` (wheel speeds commanded) or ``effort`` (open-loop wheel torques).
     fault, wheel, fault_time : optional
         A FaultKind to inject on ``wheel`` at ``fault_time`` seconds into the drive.
+    more_faults : sequence of (fault, wheel, fault_time)
+        Further faults (other wheels), injected likewise; not in the returned ground truth.
     base_settings
         Overrides of the virtual base's settings (noise, fault magnitudes, ...).
 
@@ -62,6 +65,7 @@ def record_drive(path, model, script, mode='velocity', fault=None, wheel=None, f
     steps = int(round(script.duration / cycle))
     times = np.arange(steps) * cycle
     twists = script.twists(times)
+    pending = sorted(more_faults, key=lambda f: f[2])
     with LockstepBase(model, cycle, **base_settings) as rig, \
             RecordingWriter(path, names, storage) as writer:
         for k in range(steps):
@@ -70,6 +74,8 @@ def record_drive(path, model, script, mode='velocity', fault=None, wheel=None, f
             if fault is not None and math.isnan(onset) and times[k] >= fault_time:
                 rig.base.inject(fault, wheel)
                 onset = start_stamp + rig.base.time
+            while pending and times[k] >= pending[0][2]:
+                rig.base.inject(*pending.pop(0)[:2])
             writer.wheel_command(start_stamp + rig.base.time, mode, command)
             sample = rig.step(mode, command)
             if sample is not None:

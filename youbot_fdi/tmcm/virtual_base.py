@@ -457,7 +457,7 @@ class VirtualYoubot:
                 error = float(self.drive.ticks_to_wheel_angle(target + module.encoder_offset)) \
                     - sign * self.simulator.position[index]
                 limit = float(self.drive.rpm_to_wheel_speed(self.settings.max_positioning_velocity))
-                setpoints[index] = float(np.clip(self.settings.position_gain * error, -limit, limit))
+                setpoints[index] = sign * float(np.clip(self.settings.position_gain * error, -limit, limit))
                 mode = ControlMode.VELOCITY
             modes[index] = int(mode if mode in (ControlMode.VELOCITY, ControlMode.CURRENT)
                                else ControlMode.MOTOR_STOP)
