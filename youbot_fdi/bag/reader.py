@@ -3,8 +3,10 @@
 :meth:`RecordingReader.chunks` reads a recording in chunks of messages and decodes the messages of
 a chunk that share a layout as one block (:mod:`youbot_fdi.bag.cdr`); rosbags decodes the rest.
 Messages are matched to the model's wheels **by joint name**. Bad messages (NaN, arrays shorter
-than the names, a wheel missing) are skipped and counted, never fatal; an unreadable recording or
-one without the joint-state topic raises :class:`RecordingError` with a one-line reason.
+than the names, a wheel missing) are skipped and counted, never fatal. A damaged recording (cut
+short, no metadata.yaml, broken part-way) is read as far as it can be (:mod:`~youbot_fdi.bag.salvage`)
+and says what was lost in :attr:`RecordingReader.damage`; one of which nothing can be read, or
+without the joint-state topic, raises :class:`RecordingError` with a one-line reason.
 """
 from pathlib import Path
 
@@ -73,6 +75,9 @@ class RecordingReader:
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self.mapper = SampleMapper(wheel_names)
         self.counters = self.mapper.counters
+        #: :class:`~youbot_fdi.bag.salvage.Damage` when rosbags could not read the recording whole
+        #: (cut short, no metadata.yaml), or it broke part-way; None otherwise
+        self.damage = None
         if not self.path.exists():
             msg = f'{self.path}: no such recording'
             raise RecordingError(msg)
@@ -80,8 +85,8 @@ class RecordingReader:
             self._reader = Reader(self.path)
             self._reader.open()
         except Exception as err:  # noqa: BLE001 - rosbags raises several types for broken bags
-            msg = f'{self.path}: not a readable rosbag2 recording ({type(err).__name__}: {err})'
-            raise RecordingError(msg) from err
+            self._reader = self._salvage(err)
+            self.damage = self._reader.damage
         topics = {c.topic: c for c in self._reader.connections}
         if joint_topic not in topics or topics[joint_topic].msgcount == 0:
             self._reader.close()
@@ -96,6 +101,17 @@ class RecordingReader:
             msg = f'{self.path}: {bad[0]} is not {JOINT_STATE_TYPE}'
             raise RecordingError(msg)
         self.has_commands = command_topic in topics
+
+    def _salvage(self, error):
+        """The readable part, streamed without rosbags (:mod:`youbot_fdi.bag.salvage`), or
+        RecordingError naming rosbags' complaint when nothing can be read."""
+        from youbot_fdi.bag.salvage import SalvageError, SalvageReader
+        try:
+            return SalvageReader(self.path)
+        except (SalvageError, OSError) as salvage_error:
+            msg = (f'{self.path}: not a readable rosbag2 recording ({type(error).__name__}: {error}; '
+                   f'read without rosbags: {salvage_error})')
+            raise RecordingError(msg) from error
 
     @property
     def duration(self):
@@ -113,11 +129,8 @@ class RecordingReader:
         return self._reader.start_time / NANOSECONDS
 
     def samples(self):
-        """Yield :class:`JointSample` and :class:`CommandSample` in recording order.
-
-        A recording that breaks part-way raises :class:`RecordingError` after the samples
-        read so far have been yielded.
-        """
+        """Yield :class:`JointSample` and :class:`CommandSample` in recording order (up to the
+        damage of a damaged recording, see :attr:`damage`)."""
         for chunk in self.chunks():
             joints, commands = chunk.joints, chunk.commands
             done = 0
@@ -133,10 +146,10 @@ class RecordingReader:
         """Yield :class:`~youbot_fdi.samples.SampleChunk` s of up to ``size`` messages.
 
         ``on_progress(messages read, total)`` is called after each chunk. A recording that breaks
-        part-way raises :class:`RecordingError` after the chunks read so far have been yielded.
+        part-way ends after the chunks read so far, with :attr:`damage` saying where.
         """
         layouts = {self.joint_topic: None, self.command_topic: None}
-        pending, read, total = [], 0, self.message_count
+        pending, read, total, span = [], 0, self.message_count, [None, None]
         try:
             for connection, timestamp, raw in self._reader.messages(connections=self.connections):
                 topic = connection.topic
@@ -146,15 +159,21 @@ class RecordingReader:
                 pending.append((topic == self.joint_topic, layout, raw, timestamp))
                 if len(pending) >= size:
                     read += len(pending)
+                    span = [pending[0][3] if span[0] is None else span[0], pending[-1][3]]
                     yield self._chunk(pending)
                     pending = []
                     if on_progress is not None:
                         on_progress(read, total)
         except Exception as err:  # noqa: BLE001 - rosbags raises several types for broken bags
+            from youbot_fdi.bag.salvage import Damage
             if pending:
+                read += len(pending)
+                span = [pending[0][3] if span[0] is None else span[0], pending[-1][3]]
                 yield self._chunk(pending)
-            msg = f'{self.path}: recording broken part-way ({type(err).__name__}: {err})'
-            raise RecordingError(msg) from err
+            first, last = (np.nan if t is None else t / NANOSECONDS for t in span)
+            self.damage = Damage((self.path.name,), f'broken part-way: {type(err).__name__}: {err}',
+                                 read, first, last, total, None, None, False)
+            return
         if pending:
             read += len(pending)
             yield self._chunk(pending)

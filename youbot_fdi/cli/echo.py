@@ -16,10 +16,20 @@ def add_parser(subparsers):
     parser.add_argument('--count', type=int, default=0, help='stop after this many events (0: never)')
     parser.add_argument('--timeout', type=float, default=0.0, help='stop after this many seconds (0: never)')
     parser.add_argument('--topic', default=FAULTS)
+    parser.add_argument('--events', help='also write the events here (JSON lines, each flushed as '
+                                         'it arrives)')
     parser.set_defaults(run=run)
 
 
 def run(args):
+    from contextlib import nullcontext
+
+    from youbot_fdi.fdi.eventlog import EventLog
     from youbot_fdi.nodes.echo import echo_faults
-    echo_faults(args.topic, args.count, args.timeout, write=lambda line: print(line, flush=True))
+    with (EventLog(args.events) if args.events else nullcontext()) as log:
+        def write(event):
+            print(event.to_json(), flush=True)
+            if log is not None:
+                log.write(event)
+        echo_faults(args.topic, args.count, args.timeout, write=write)
     return 0

@@ -1,6 +1,9 @@
 """``youbot-fdi identify``: model parameters and residual noise floors from a nominal recording."""
 from pathlib import Path
+import sys
 
+
+from youbot_fdi.cli.status import DAMAGED
 
 NAME = 'identify'
 HEADER = ('# Identified by `youbot-fdi identify`: a parameter profile (config/profiles schema) plus\n'
@@ -14,7 +17,8 @@ def add_parser(subparsers):
         description='Fit inertias, viscous and Coulomb friction (least squares), the firmware PI '
                     'gains and input delay (velocity mode), run the report\'s friction sweep, report the fit (NRMSE '
                     'per wheel) and learn the residual noise floors the thresholds use. Writes a '
-                    'parameter file for `replay --params`.')
+                    'parameter file for `replay --params`. A damaged recording (cut short) is used as '
+                    'far as it can be read: exit status 3, with a line saying what was lost.')
     parser.add_argument('bag', help='rosbag2 directory of nominal (fault-free) driving')
     parser.add_argument('--output', required=True, help='parameter file to write (YAML)')
     parser.add_argument('--profile', default='youbot', help='prior profile (default: youbot)')
@@ -38,6 +42,8 @@ def run(args):
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(HEADER + yaml.safe_dump(data, sort_keys=False, width=100))
     dyn = profile.dynamics
+    if result.damage is not None:
+        print(f'{args.bag}: {result.damage.describe()}', file=sys.stderr)
     print(f'{args.bag}: {result.info["samples"]} samples over {result.info["duration_s"]:.1f} s')
     print(f'  mass {dyn.mass:.3g} kg, J_z {dyn.yaw_inertia:.3g} kg·m², J_w {dyn.wheel_inertia[0]:.3g} kg·m²'
           f'  (torque fit R² {result.info["torque_fit_r_squared"]:.4f})')
@@ -69,4 +75,4 @@ def run(args):
         plot_friction_sweep(result.sweep, Path(args.plot))
         print(f'friction sweep figure: {args.plot}')
     print(f'parameters: {args.output}')
-    return 0
+    return DAMAGED if result.damage is not None and result.damage.lost else 0

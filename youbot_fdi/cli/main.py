@@ -4,6 +4,7 @@ import sys
 
 from youbot_fdi import __version__
 from youbot_fdi.cli import bench, demo, echo, identify, model_info, play, record, replay, simulate, structure
+from youbot_fdi.cli.status import ERROR, INTERRUPTED
 from youbot_fdi.errors import FdiError
 
 COMMANDS = (demo, identify, replay, record, play, echo, simulate, structure, model_info, bench)
@@ -32,9 +33,9 @@ def main(argv=None):
         return args.run(args) or 0
     except (FdiError, FileNotFoundError) as err:
         print(f'youbot-fdi {args.command}: error: {err}', file=sys.stderr)
-        return 1
+        return ERROR
     except KeyboardInterrupt:
-        return 130
+        return INTERRUPTED
 
 
 if __name__ == '__main__':

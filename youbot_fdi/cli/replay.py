@@ -3,6 +3,7 @@ from pathlib import Path
 import sys
 import time
 
+from youbot_fdi.cli.status import DAMAGED
 from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 NAME = 'replay'
@@ -15,8 +16,12 @@ def add_parser(subparsers):
         NAME, help='run the FDI pipeline offline over a recording; write fault events',
         description='Replay a rosbag2 recording (sqlite3 or mcap) through the same residual '
                     'generator and decision the live nodes use, and write one JSON line per fault '
-                    'state change. Exit status 0 whether or not faults were found; 1 with a '
-                    'one-line reason on unreadable input (events found before are kept).')
+                    'state change, each written and flushed as it is found. A recording cut short '
+                    '(power lost while recording), broken part-way or without metadata.yaml is '
+                    'analysed as far as it can be read. Exit status: 0 whether or not faults were '
+                    f'found; {DAMAGED} for a damaged recording (its readable part analysed, one '
+                    'line saying where it ends and what was lost); 1 with a one-line reason when '
+                    'nothing can be read.')
     parser.add_argument('bag', help='rosbag2 directory')
     parser.add_argument('--params', help='parameter file from `youbot-fdi identify` (default: the '
                                          'youbot profile and config/fdi.yaml)')
@@ -38,17 +43,17 @@ def _progress(done, total, started):
 
 def run(args):
     from youbot_fdi.bag.reader import RecordingError
+    from youbot_fdi.fdi.eventlog import EventLog
     from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.fdi.residuals import STAMP_COUNTERS
     model, pipeline = build_pipeline(args.params, args.fdi_config, keep_frames=bool(args.report))
     events_path = Path(args.events)
-    events_path.parent.mkdir(parents=True, exist_ok=True)
     found = []
     error = None
     started = time.perf_counter()
-    with events_path.open('w') as events_file:
+    with EventLog(events_path) as log:
         def keep(event):
-            events_file.write(event.to_json() + '\n')
-            events_file.flush()
+            log.write(event)
             found.append(event)
 
         drawn = [0.0]
@@ -73,11 +78,16 @@ def run(args):
         return 1
     alarms = [e for e in found if e.level == 'ERROR']
     counters = result.counters
+    if result.damage is not None:
+        print(f'{args.bag}: {result.damage.describe()}', file=sys.stderr)
     print(f'{args.bag}: {counters["joint_states"]} joint states, {counters["wheel_commands"]} '
           f'commands in {elapsed:.2f} s; {len(alarms)} alarms, {len(found)} events -> {events_path}')
     skipped = {k: v for k, v in counters.items() if k.startswith('skipped') and v}
     if skipped:
         print(f'skipped messages: {skipped}')
+    restarts = {k: v for k, v in counters.items() if k in STAMP_COUNTERS and v}
+    if restarts:
+        print(f'samples that restarted the residuals: {restarts}')
     if not result.has_commands:
         print(f'note: no {args.command_topic}: faults in the command path (runaway) cannot be seen')
     for event in alarms:
@@ -86,4 +96,4 @@ def run(args):
         from youbot_fdi.fdi.report import write_report
         index = write_report(Path(args.report), model, pipeline, found, args.bag)
         print(f'report: {index}')
-    return 0
+    return DAMAGED if result.damage is not None and result.damage.lost else 0

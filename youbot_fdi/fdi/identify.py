@@ -67,10 +67,11 @@ class RecordingArrays:
     velocity: np.ndarray  # (k, n)
     torque: np.ndarray  # (k, n)
     commands: list  # CommandSample list (driver convention, as recorded)
+    damage: object = None  # youbot_fdi.bag.salvage.Damage of a damaged recording (read in part)
 
 
 def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMANDS):
-    """Read a recording into :class:`RecordingArrays`."""
+    """Read a recording into :class:`RecordingArrays` (a damaged one as far as it can be read)."""
     signs = model.kinematics.drive_signs
     rows, commands = [], []
     with RecordingReader(path, model.wheel_names, joint_topic, command_topic) as reader:
@@ -80,13 +81,14 @@ def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMA
             else:
                 rows.append((sample.stamp, signs * sample.position, signs * sample.velocity,
                              signs * sample.effort))
+        damage = reader.damage
     if len(rows) < MIN_SAMPLES:
         msg = f'{path}: {len(rows)} usable joint states; identification needs at least {MIN_SAMPLES}'
         raise IdentificationError(msg)
     rows.sort(key=lambda r: r[0])
     time = np.array([r[0] for r in rows])
     return RecordingArrays(time, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                           np.array([r[3] for r in rows]), commands)
+                           np.array([r[3] for r in rows]), commands, damage)
 
 
 def _smooth(values, dt, deriv=0):
@@ -314,6 +316,7 @@ class IdentificationResult:
     fdi: dict  # learned FDI settings (bound floors and weights, input delay, sample interval)
     info: dict
     coverage: dict = None  # family -> share of the nominal samples inside the learned bound
+    damage: object = None  # youbot_fdi.bag.salvage.Damage when the recording was read in part
 
 
 def identify(path, prior_model, settings, fit_gains=True):
@@ -362,4 +365,5 @@ def identify(path, prior_model, settings, fit_gains=True):
     }
     profile = replace(model.profile, name=f'{prior_model.profile.name}_identified',
                       description=f'identified from {path}', fdi=fdi, identification=identification)
-    return IdentificationResult(profile, nrmse_currents, nrmse_commands, sweep, fdi, info, coverage)
+    return IdentificationResult(profile, nrmse_currents, nrmse_commands, sweep, fdi, info, coverage,
+                                arrays.damage)

@@ -74,8 +74,9 @@ class ReplayResult:
     """What a replay of a recording found."""
 
     events: list  # FaultEvent, in order
-    counters: dict  # the reader's message counters (used, skipped ...)
+    counters: dict  # the reader's message counters (used, skipped ...) and the generator's restarts
     has_commands: bool  # the recording had the command topic
+    damage: object = None  # youbot_fdi.bag.salvage.Damage of a damaged recording, else None
 
 
 class FdiPipeline:
@@ -155,9 +156,9 @@ class FdiPipeline:
     def replay(self, path, joint_topic=None, command_topic=None, on_event=None, on_progress=None):
         """Feed a rosbag2 recording through the pipeline, streaming, a chunk at a time.
 
-        ``on_event(event)`` is called as each event is found (so a caller keeps them even when the
-        recording breaks part-way and :class:`~youbot_fdi.bag.reader.RecordingError` is raised);
-        ``on_progress(messages done, total)`` after every chunk.
+        ``on_event(event)`` is called as each event is found (a caller can write them as they
+        come); ``on_progress(messages done, total)`` after every chunk. A damaged recording is
+        analysed as far as it can be read (the result's ``damage`` says where it ended).
         """
         from youbot_fdi.bag.reader import JOINT_STATES, RecordingReader, WHEEL_COMMANDS
         events = []
@@ -168,4 +169,5 @@ class FdiPipeline:
                     events.append(event)
                     if on_event is not None:
                         on_event(event)
-            return ReplayResult(events, dict(reader.counters), reader.has_commands)
+            return ReplayResult(events, {**reader.counters, **self.generator.counters},
+                                reader.has_commands, reader.damage)

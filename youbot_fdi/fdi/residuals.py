@@ -39,6 +39,8 @@ from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, VELOCITY
 from youbot_fdi.structure.generate import wheel_suffix
 
+#: Why a sample restarted the generator: counters of :attr:`ResidualGenerator.counters`.
+STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
 FAMILIES = ('torque', 'observer', 'command', 'encoder')
 #: Signals a frame carries besides its residuals: (label prefix, attribute).
 SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
@@ -266,9 +268,16 @@ class ResidualGenerator:
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
         self._load = (np.zeros(2 * self.n), 1.0)
         self._last = None
-        self.skipped = 0
+        #: samples that restart the generator, by cause (reported with the skipped messages)
+        self.counters = dict.fromkeys(STAMP_COUNTERS, 0)
 
     # ------------------------------------------------------------------ helpers
+    def _count_restarts(self, dt):
+        """Count the steps ``dt`` [s] (array) that restart the generator, by cause: a stamp going
+        backwards, a stamp repeated (a duplicated sample), a gap longer than ``data_timeout``."""
+        for name, rows in zip(STAMP_COUNTERS, (dt < 0.0, dt == 0.0, dt > self.settings.data_timeout)):
+            self.counters[name] += int(np.count_nonzero(rows))
+
     def _discrete(self, dt):
         """(Phi, Gamma, Gamma^-1) over ``dt`` [s], cached per 0.1 ms."""
         key = max(round(float(dt), DT_KEY_DECIMALS), 10.0 ** -DT_KEY_DECIMALS)
@@ -573,7 +582,8 @@ class ResidualGenerator:
         velocity_mode, target = bool(modes[0]), targets[0]
         dt = None if self._last is None else stamp - self._last[0]
         if dt is None or not 0.0 < dt <= s.data_timeout:
-            self.skipped += int(dt is not None)
+            if dt is not None:
+                self._count_restarts(np.array([dt]))
             self._restart(stamp, position, velocity, torque, velocity_mode, target)
             return None
         _, last_position, last_velocity, last_torque = self._last
@@ -653,7 +663,7 @@ class ResidualGenerator:
         restart = ~((dt > 0.0) & (dt <= s.data_timeout))
         if first:
             restart[0] = True
-        self.skipped += int(np.count_nonzero(restart)) - int(first)
+        self._count_restarts(dt[1:] if first else dt)
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]

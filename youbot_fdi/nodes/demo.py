@@ -7,7 +7,6 @@ shim only within a process), but talk only through topics: /cmd_vel -> kinematic
 /cmd_vel, injects the fault into the virtual base at its time, and shows what happens.
 """
 from dataclasses import dataclass
-import json
 import os
 import time
 import uuid
@@ -21,6 +20,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 import rclpy
 
+from youbot_fdi.fdi.eventlog import EventLog
 from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes
 from youbot_fdi.nodes.composed import FDI_NODES
 from youbot_fdi.nodes.conversions import event_from_status
@@ -49,9 +49,9 @@ class DemoPlan:
 class DemoDriverNode(Node):
     """Publishes the scripted /cmd_vel, injects the fault, and shows wheel states and faults."""
 
-    def __init__(self, plan, base, **kwargs):
+    def __init__(self, plan, base, log=None, **kwargs):
         super().__init__('demo_driver', **kwargs)
-        self.plan, self.base = plan, base
+        self.plan, self.base, self.log = plan, base, log
         self.cmd_pub = self.create_publisher(Twist, CMD_VEL, 10)
         self.create_subscription(DiagnosticArray, FAULTS, self.on_faults, LATCHED_QOS)
         self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
@@ -131,6 +131,8 @@ class DemoDriverNode(Node):
             if event in self.events:
                 continue
             self.events.append(event)
+            if self.log is not None:
+                self.log.write(event)
             t = event.stamp - self.start if self.start is not None else float('nan')
             note = ''
             if event.level == 'ERROR' and self.injected_at is not None:
@@ -147,12 +149,13 @@ def run_demo(plan, events_path=None, max_wall_time=None):
     executor = SingleThreadedExecutor(context=context)
     channel = [Parameter('can_channel', value=f'demo-{uuid.uuid4()}')]
     nodes = []
+    log = EventLog(events_path) if events_path else None
     try:
         base_node = VirtualYoubotNode(context=context, parameter_overrides=channel)
         nodes.append(base_node)
         nodes.append(DriverShimNode(context=context, parameter_overrides=channel))
         nodes += [factory(context=context) for factory in FDI_NODES]
-        driver = DemoDriverNode(plan, base_node.base, context=context)
+        driver = DemoDriverNode(plan, base_node.base, log, context=context)
         nodes.append(driver)
         for node in nodes:
             executor.add_node(node)
@@ -161,11 +164,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             executor.spin_once(timeout_sec=0.01)
         for _ in range(20):  # deliver the last fault messages
             executor.spin_once(timeout_sec=0.01)
-        events = list(driver.events)
-        if events_path:
-            with open(events_path, 'w') as handle:
-                for event in events:
-                    handle.write(json.dumps(event.to_dict()) + '\n')
-        return events, driver.injected_at, driver.start
+        return list(driver.events), driver.injected_at, driver.start
     finally:
         shutdown_nodes(executor, nodes, context)
+        if log is not None:
+            log.close()

@@ -1,5 +1,4 @@
 """Print fault events from /youbot_fdi/faults as JSON lines (``youbot-fdi echo``)."""
-import json
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -12,14 +11,15 @@ from youbot_fdi.topics import FAULTS
 
 
 def echo_faults(topic=FAULTS, count=0, timeout=0.0, write=print):
-    """Subscribe (latched) and write each event; stop after ``count`` events or ``timeout`` [s]."""
+    """Subscribe (latched) and ``write`` each :class:`~youbot_fdi.fdi.decision.FaultEvent` as it
+    arrives; stop after ``count`` events or ``timeout`` [s]."""
     rclpy.init()
     node = Node('youbot_fdi_echo')
     seen = []
 
     def on_faults(msg):
         for status in msg.status:
-            write(json.dumps(event_from_status(status).to_dict()))
+            write(event_from_status(status))
             seen.append(status)
 
     node.create_subscription(DiagnosticArray, topic, on_faults, LATCHED_QOS)
