@@ -104,6 +104,40 @@ COUNTERS = ('joint_states', 'wheel_commands', 'skipped_nan', 'skipped_short',
             'skipped_missing_joint', 'skipped_no_values')
 
 
+#: What each counted input problem means, for people (the mapper's skips and the residual
+#: generator's restarts, :data:`youbot_fdi.fdi.residuals.STAMP_COUNTERS`).
+INPUT_PROBLEMS = {
+    'skipped_nan': 'NaN or infinite values',
+    'skipped_short': 'arrays shorter than the joint names',
+    'skipped_missing_joint': 'a wheel joint missing (unknown or absent names)',
+    'skipped_no_values': 'no values (empty or undecodable message)',
+    'stamps_backwards': 'header stamp going backwards',
+    'stamps_repeated': 'header stamp repeated (duplicated sample)',
+    'gaps': 'gap in the samples',
+}
+
+
+class InputReport:
+    """Rate-limited account of input problems for live diagnostics: at most one report every
+    ``interval`` seconds, naming what was counted since the last report."""
+
+    def __init__(self, interval):
+        self.interval = interval  # [s]
+        self._reported = {}
+        self._last = -math.inf
+
+    def check(self, counters, now):
+        """Lines naming the problems counted since the last report, or [] (nothing new, or
+        reported less than ``interval`` ago). ``counters``: name -> running count; ``now`` [s]."""
+        new = {k: v - self._reported.get(k, 0) for k, v in counters.items()
+               if k in INPUT_PROBLEMS and v > self._reported.get(k, 0)}
+        if not new or now - self._last < self.interval:
+            return []
+        self._last = now
+        self._reported.update({k: counters[k] for k in new})
+        return [f'{INPUT_PROBLEMS[k]}: {n} new ({counters[k]} in all)' for k, n in sorted(new.items())]
+
+
 def message_time(header_stamps, receive_times):
     """The clock rule (docs/fdi.md): a message's time is its header stamp, or its receive time
     when the header carries none (zero). The same for /joint_states and /wheel_commands, offline
@@ -141,6 +175,9 @@ class SampleMapper:
     def _usable(self, names, fields, rows):
         """The wheel index of ``names`` and the fields picked in wheel order (None: absent), or
         None when the whole block is unusable (counted)."""
+        if not len(names) and not any(field.shape[1] for field in fields):
+            self.counters['skipped_no_values'] += rows  # an empty message
+            return None
         index = self._indices(names)
         if index is None:
             self.counters['skipped_missing_joint'] += rows

@@ -262,11 +262,31 @@ def bench_start():
                        numpy, f'a fresh interpreter each; target <= {START_TARGET:g}x')
 
 
+FUZZ_FRAMES = 100_000  # generated CAN frames per benchmark run (issue 17)
+
+
+def bench_fuzz(progress=print, frames=FUZZ_FRAMES):
+    """The CAN fuzz (every decoding entry point, see :mod:`youbot_fdi.bench.fuzz`): frames per
+    second through all of them, against decoding one well-formed TMCL request."""
+    from youbot_fdi.bench.fuzz import fuzz_frames
+    from youbot_fdi.tmcm.tmcl import decode_request_can, TmclRequest
+    can_id, payload = TmclRequest(0x11, 1, 0, 0, 5).to_can()
+    baseline = _rate(lambda: decode_request_can(can_id, payload))
+    started = time.perf_counter()
+    report = fuzz_frames(frames, progress=progress)
+    rate = report.frames / (time.perf_counter() - started)
+    for violation in report.violations[:5]:
+        progress(f'  fuzz violation: {violation}')
+    return BenchResult('CAN fuzz: frames through every decoder', rate, 'frames/s',
+                       'one TMCL request decoded', baseline, report.describe())
+
+
 def run_all(progress=print):
     """Run every case; returns the results."""
     results = []
     for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can),
-                        ('start', bench_start), ('replay', lambda: bench_replay(progress)),
+                        ('start', bench_start), ('fuzz', lambda: bench_fuzz(progress)),
+                        ('replay', lambda: bench_replay(progress)),
                         ('nodes', bench_nodes)):
         progress(f'running {label} ...')
         outcome = case()

@@ -6,7 +6,8 @@
    persistent excess is found (it adds up), a single spike is not an alarm (it is capped and
    drains away). Torque and command-path evidence on half the wheels or more at once (half the
    threshold each, rising within ``shared_window`` of each other) is a change they share, not a
-   wheel fault; a wheel already in alarm for longer does not make a later one "shared". A position reading that repeats
+   wheel fault; so is a modest excess (score below ``second_fault_score``) while other wheels'
+   evidence is up. A clear excess on a wheel that rose later is a second fault. A position reading that repeats
    exactly while the wheel is commanded and measured to turn is direct evidence of a frozen
    sensor (``frozen_samples`` in a row), at any rate.
 2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
@@ -177,8 +178,8 @@ class DecisionMaker:
         before = self._evidence
         evidence = self.evidence(z)
         over = evidence >= threshold
-        over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES],
-                                                 evidence[:, SHARED_FAMILIES], stamps)
+        over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
+                                                 z[:, SHARED_FAMILIES], stamps)
         rows = len(over)
         if rows == 1:  # the same latch, one row (the live path)
             self._below = np.where(over[0], 0, self._below + excited[0])
@@ -194,20 +195,30 @@ class DecisionMaker:
         self._below, self.alarm = below[-1], alarm[-1]
         return alarm
 
-    def _shared(self, before, evidence, stamps):
-        """Rows x families x wheels (N, f, n) whose evidence is shared: it rose to
-        ``SHARED_SHARE`` of the threshold within ``shared_window`` of the rise on at least half the
-        wheels, which are still there (a surface, load or timing change they share, until the load
-        factor has caught up). ``before`` (f, n) is the evidence before the first row."""
-        level = SHARED_SHARE * self.settings.evidence_threshold
+    def _shared(self, before, evidence, z, stamps):
+        """Rows x families x wheels (N, f, n) whose evidence is shared with the other wheels', from
+        the evidence (N, f, n) and scores ``z`` (N, f, n); ``before`` (f, n) is the evidence before
+        the first row. Shared is evidence past ``SHARED_SHARE`` of the threshold on half the
+        wheels or more, when either
+
+        - it rose within ``shared_window`` of the rise on those wheels (a surface, load or timing
+          change they share, until the load factor has caught up), or
+        - this wheel's score is below ``second_fault_score``: a modest excess while other wheels'
+          evidence is up (a fault elsewhere changes how the base moves) is not a fault of its own;
+          a clear one is (a second fault).
+        """
+        s = self.settings
+        level = SHARED_SHARE * s.evidence_threshold
         up = evidence >= level
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
         rise = np.maximum(np.maximum.accumulate(rise, axis=0), self._rise[SHARED_FAMILIES])
         self._rise[SHARED_FAMILIES] = rise[-1]
         together = (up[..., None, :]
-                    & (np.abs(rise[..., :, None] - rise[..., None, :]) <= self.settings.shared_window))
-        return np.count_nonzero(together, axis=-1) * 2 >= self.n
+                    & (np.abs(rise[..., :, None] - rise[..., None, :]) <= s.shared_window))
+        rose_together = np.count_nonzero(together, axis=-1) * 2 >= self.n
+        co_occurring = (np.count_nonzero(up, axis=-1) * 2 >= self.n)[..., None]
+        return rose_together | (co_occurring & (z < s.second_fault_score))
 
     def _load_events(self, stamps, factors):
         """WARN/OK events of the load condition over rows (stamps (N,), load factors (N,))."""

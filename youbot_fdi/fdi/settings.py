@@ -59,6 +59,7 @@ class FdiSettings:
     evidence_threshold: float = 3.0
     release: int = 50  # excited samples without evidence to clear an alarm
     shared_window: float = 1.0  # evidence rising on half the wheels within this is shared [s]
+    second_fault_score: float = 3.0  # |r|/u from which a later-rising wheel is judged on its own [-]
     frozen_samples: int = 3  # identical readings that count as frozen
     stuck_speed: float = 0.3  # a wheel slower than this with its current up is stuck [rad/s]
     comm_timeout: float = 0.2  # a gap in /joint_states longer than this is comm_loss [s] ...
@@ -85,7 +86,7 @@ class FdiSettings:
                 problems.append(name)
         for name in ('observer_time_constant', 'comm_timeout', 'command_timeout',
                      'classification_window', 'load_time_constant', 'evidence_threshold',
-                     'evidence_drift', 'shared_window'):
+                     'evidence_drift', 'shared_window', 'second_fault_score'):
             if getattr(self, name) <= 0:
                 problems.append(name)
         if self.load_factor_limit < 1.0:

@@ -1,0 +1,100 @@
+"""Bad input through real rclpy topics (issue 17): NaN, short, unknown-name, empty and
+backwards-stamped JointState on /joint_states and /wheel_commands among good ones. The nodes keep
+running, say what was wrong on /diagnostics (rate-limited), raise no wheel fault; a silent
+/joint_states is the base's comm_loss within comm_timeout."""
+import math
+
+import pytest
+
+from ros_harness import Harness
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+
+from youbot_fdi.fdi.settings import FdiSettings  # noqa: E402
+from youbot_fdi.model import load_model  # noqa: E402
+from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, seconds_to_stamp  # noqa: E402
+from youbot_fdi.nodes.conversions import event_from_status  # noqa: E402
+from youbot_fdi.nodes.decision import DecisionNode  # noqa: E402
+from youbot_fdi.nodes.observer import ObserverNode  # noqa: E402
+
+NAMES = load_model('youbot').wheel_names
+RATE = 100.0  # [Hz]
+BAD_EVERY = 10  # one bad message among this many
+SILENCE = 2.0  # [s]
+
+
+def message(stamp, names=NAMES, values=None):
+    msg = JointState()
+    msg.header.stamp = seconds_to_stamp(stamp)
+    msg.name = list(names)
+    values = [0.0] * len(names) if values is None else values
+    msg.position, msg.velocity, msg.effort = list(values), list(values), list(values)
+    return msg
+
+
+def bad_messages(stamp):
+    """One of each kind of bad message, in turn."""
+    empty = JointState()
+    empty.header.stamp = seconds_to_stamp(stamp)
+    return [message(stamp, values=[math.nan, 0.0, 0.0, 0.0]),
+            message(stamp, values=[0.0, 0.0]),  # shorter than the names
+            message(stamp, names=['caster', 'arm_joint_1', 'x', 'y']),
+            empty,
+            message(stamp - 5.0)]  # stamped 5 s in the past
+
+
+@pytest.fixture()
+def harness():
+    made = Harness()
+    yield made
+    made.close()
+
+
+def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
+    harness.add(ObserverNode(context=harness.context))
+    decision = harness.add(DecisionNode(context=harness.context))
+    faults, warnings, residuals = [], [], []
+    probe = harness.probe
+    probe.create_subscription(DiagnosticArray, '/youbot_fdi/faults',
+                              lambda m: faults.extend(event_from_status(s) for s in m.status), LATCHED_QOS)
+    probe.create_subscription(
+        DiagnosticArray, '/diagnostics',
+        lambda m: warnings.extend(s for s in m.status if s.level == DiagnosticStatus.WARN
+                                  and s.name.endswith('observer: input')), 10)
+    probe.create_subscription(JointState, '/youbot_fdi/residuals', residuals.append, 10)
+    joints = probe.create_publisher(JointState, '/joint_states', 10)
+    commands = probe.create_publisher(JointState, '/wheel_commands', 10)
+    count = [0]
+
+    def publish():
+        stamp = now_seconds(decision)
+        k = count[0]
+        count[0] += 1
+        if k % BAD_EVERY == BAD_EVERY - 1:
+            bad = bad_messages(stamp)[(k // BAD_EVERY) % 5]
+            (joints if (k // BAD_EVERY) % 2 else commands).publish(bad)
+            joints.publish(bad)
+        else:
+            commands.publish(message(stamp))
+            joints.publish(message(stamp))
+
+    harness.spin_for(6.0, every=1.0 / RATE, action=publish)
+    assert residuals, 'the observer stopped'
+    late = len(residuals)
+    text = ' '.join(w.message for w in warnings)
+    for problem in ('NaN', 'shorter', 'joint missing', 'no values', 'backwards'):
+        assert problem in text, f'{problem!r} not named on /diagnostics: {text}'
+    assert len(warnings) <= 8  # rate-limited: at most one a second (6 s)
+    assert [e for e in faults if e.level == 'ERROR'] == []
+
+    # /joint_states falls silent: comm_loss of the base within comm_timeout.
+    silent_from = now_seconds(decision)
+    harness.spin_for(SILENCE)
+    lost = [e for e in faults if e.level == 'ERROR']
+    assert [(e.wheel, e.fault) for e in lost] == [(None, 'comm_loss')]
+    settings = FdiSettings()
+    assert lost[0].stamp - residuals[-1].header.stamp.sec - residuals[-1].header.stamp.nanosec * 1e-9 \
+        == pytest.approx(settings.data_timeout, abs=1e-6)
+    assert len(residuals) == late
+    assert silent_from < lost[0].stamp + 0.5  # raised while silent, not before
