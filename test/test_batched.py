@@ -199,6 +199,29 @@ def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_d
         assert stepped, 'the saturating PI loop was never stepped period by period'
 
 
+def test_batched_replay_equals_sample_by_sample_with_a_learned_correction(recordings, model):
+    """The learned correction (issue 12) is evaluated alike one sample at a time and in blocks."""
+    from youbot_fdi.model.profile import PlatformModel
+    learned = {'torque': {'weights': [[0.02, 0.01, 0.001], [-0.01, 0.02, 0.0], [0.015, -0.01, 0.002],
+                                      [0.0, 0.01, -0.001]],
+                          'limit': [0.05] * 4, 'speed_scale': 0.05}}
+    corrected = PlatformModel(replace(model.profile, learned=learned))
+    settings = build_pipeline()[1].settings
+    pipeline = FdiPipeline(corrected, settings, keep_frames=True)
+    assert pipeline.generator.correction is not None
+    with RecordingReader(recordings['friction'], model.wheel_names) as reader:
+        events = [e for chunk in reader.chunks(size=SMALL_CHUNK) for e in pipeline.feed(chunk)]
+    frames, expected = sample_by_sample(recordings['friction'], corrected, settings)
+    assert [e.to_dict() for e in events] == [e.to_dict() for e in expected]
+    np.testing.assert_allclose(pipeline.residuals().values['torque'], [f.values['torque'] for f in frames],
+                               rtol=1e-9, atol=1e-12)
+    physics = FdiPipeline(model, settings, keep_frames=True)
+    with RecordingReader(recordings['friction'], model.wheel_names) as reader:
+        for chunk in reader.chunks():
+            physics.feed(chunk)
+    assert not np.allclose(physics.residuals().values['torque'], pipeline.residuals().values['torque'])
+
+
 @pytest.mark.parametrize('gap', [100, 3 * SMALL_CHUNK])  # within a chunk, at a chunk's start
 def test_gaps_and_repeated_stamps_restart_both_paths_alike(tmp_path, model, gap):
     """Missing and repeated samples: the generator restarts at the same rows either way."""

@@ -61,18 +61,13 @@ def cases(seed=0):
 
 
 def _calibrate(job):
-    import yaml
-    from youbot_fdi.fdi.identify import identify
-    from youbot_fdi.fdi.settings import FdiSettings
-    from youbot_fdi.model.profile import load_model, profile_to_dict
-    from youbot_fdi.settings import load_settings
+    from youbot_fdi.bench.calibration import calibrate, residual_spread
+    from youbot_fdi.model.profile import load_model
     mode, workdir, seed = job
     path = Path(workdir) / f'independent_calibration_{mode}'
     simulate(path, drive(seed, CALIBRATION_SECONDS), mode=mode, seed=seed)
-    result = identify(path, load_model('youbot'), load_settings(FdiSettings, 'fdi'))
-    params = Path(workdir) / f'independent_params_{mode}.yaml'
-    params.write_text(yaml.safe_dump(profile_to_dict(result.profile), sort_keys=False))
-    return str(params), result.coverage
+    params, result = calibrate(path, load_model('youbot'), Path(workdir) / f'independent_params_{mode}')
+    return params, result.coverage, residual_spread(result)
 
 
 def _run(job):
@@ -91,20 +86,23 @@ def _run(job):
                 start + onset if fault else math.nan, fault, start, start + at if fault else math.nan)
     if fault and math.isnan(onset):
         return None  # a runaway whose command never changed is invisible
-    return score(case, build_pipeline(params)[1].replay(path).events)
+    return {variant: score(case, build_pipeline(file)[1].replay(path).events)
+            for variant, file in params.items()}
 
 
 def run_suite(workdir, progress=print, workers=2, seed=0):
-    """Calibrate per mode, replay every case; returns (summary line, result dicts)."""
+    """Calibrate per mode, replay every case with the learned and the physics-only parameters;
+    returns (summary line, {variant: result dicts}, residual spread by variant (velocity mode))."""
     from concurrent.futures import ProcessPoolExecutor
+    from youbot_fdi.bench.calibration import VARIANTS
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     jobs = cases(seed)
     progress(f'independent simulator: identify per mode, then {len(jobs)} recordings ...')
     with ProcessPoolExecutor(workers) as pool:
         calibrated = dict(zip(MODES, pool.map(_calibrate, [(m, str(workdir), seed + 1) for m in MODES])))
-        results = [r for r in pool.map(_run, [(job, str(workdir), calibrated[job[0]][0]) for job in jobs])
-                   if r is not None]
+        scored = [r for r in pool.map(_run, [(job, str(workdir), calibrated[job[0]][0]) for job in jobs])
+                  if r is not None]
     summary = '; '.join(f'{mode}: bound coverage ' + ', '.join(f'{f} {c:.1%}' for f, c in cov.items())
-                        for mode, (_, cov) in calibrated.items())
-    return summary, results
+                        for mode, (_, cov, _) in calibrated.items())
+    return summary, {v: [r[v] for r in scored] for v in VARIANTS}, calibrated[MODES[0]][2]

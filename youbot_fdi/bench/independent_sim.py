@@ -40,13 +40,15 @@ STAMPINGS = {'before': -0.5, 'with': 0.0, 'after': 0.5}  # command stamp shift, 
 
 def simulate(path, segments, fault=None, wheel=0, fault_time=math.inf, seed=0, m=26.0, jz=1.1,
              jw=0.0105, friction=0.045, coulomb=0.03, kp=0.8, ki=7.0, mode='velocity', delay=0.004,
-             stamping='before', surface_factor=1.0, surface_time=math.inf):
+             stamping='before', surface_factor=1.0, surface_time=math.inf, coulomb_asymmetry=0.0):
     """Drive ``segments`` [(vx, vy, wz, seconds)] and write a rosbag2 recording at ``path``.
 
     ``mode`` velocity (PI loop) or effort (open-loop current commands); commands act ``delay`` [s]
     late; ``stamping`` places a command's stamp relative to the sample it goes out with; from
     ``surface_time`` [s] every wheel's friction is ``surface_factor`` times higher (another floor
-    covering: not a fault). Returns the start stamp [s]."""
+    covering: not a fault); ``coulomb_asymmetry`` makes Coulomb friction differ by direction
+    (``coulomb * (1 + a)`` turning forward, ``coulomb * (1 - a)`` backward: what the project's
+    model does not have). Returns the start stamp [s]."""
     rng = np.random.default_rng(seed)
     inv_m = np.linalg.inv(mass_matrix(m, jz, jw))
     d = np.full(4, friction)
@@ -114,7 +116,9 @@ def simulate(path, segments, fault=None, wheel=0, fault_time=math.inf, seed=0, m
                 writer.joint_state(start + t, *zip(*(values[n] for n in PUBLISHED)))
 
             def acceleration(w):
-                torque = gain * current * KT / GEAR - d * w - wheel_coulomb * np.tanh(w / 0.05)
+                direction = np.tanh(w / 0.05)
+                torque = (gain * current * KT / GEAR - d * w
+                          - wheel_coulomb * direction * (1.0 + coulomb_asymmetry * direction))
                 return inv_m @ torque
 
             for _ in range(int(round(min(CONTROL, SAMPLE) / SUBSTEP))):  # RK4

@@ -196,7 +196,8 @@ def suite_cases(root):
 
 
 def _replay_case(job):
-    """Convert one case, replay it with the calibrated parameters; a score dict (worker process)."""
+    """Convert one case, replay it with each variant's parameters; {variant: score dict}
+    (worker process)."""
     from youbot_fdi.bench.scoring import Case, score
     from youbot_fdi.fdi.pipeline import build_pipeline
     from youbot_fdi.model.profile import load_model
@@ -209,19 +210,17 @@ def _replay_case(job):
                 None if wheel is None else model.wheel_names[wheel],
                 math.nan if onset is None else start + float(run.time[onset] - run.time[0]),
                 EXPECTED_KIND.get(fault), start)
-    events = build_pipeline(params)[1].replay(path).events
-    return score(case, events)
+    return {variant: score(case, build_pipeline(file)[1].replay(path).events)
+            for variant, file in params.items()}
 
 
 def run_suite(workdir, progress=print, workers=2, root=None):
-    """The real-data suite: identify on the green calibration runs, replay every case. Returns
-    (identification summary, result dicts), or None when the data are absent."""
-    import yaml
+    """The real-data suite: identify on the green calibration runs, replay every case with the
+    learned and the physics-only parameters. Returns (identification summary, {variant: result
+    dicts}, residual spread by variant), or None when the data are absent."""
     from concurrent.futures import ProcessPoolExecutor
-    from youbot_fdi.fdi.identify import identify
-    from youbot_fdi.fdi.settings import FdiSettings
-    from youbot_fdi.model.profile import load_model, profile_to_dict
-    from youbot_fdi.settings import load_settings
+    from youbot_fdi.bench.calibration import calibrate, residual_spread, VARIANTS
+    from youbot_fdi.model.profile import load_model
     root = root or data_dir()
     if root is None:
         return None
@@ -232,12 +231,10 @@ def run_suite(workdir, progress=print, workers=2, root=None):
     calibration_path = workdir / 'robotino_calibration'
     write_recording(calibration, calibration_path, model)
     progress(f'real data: identify on {len(calibration)} green runs, then {len(cases)} replays ...')
-    result = identify(calibration_path, model, load_settings(FdiSettings, 'fdi'))
-    params = workdir / 'robotino_params.yaml'
-    params.write_text(yaml.safe_dump(profile_to_dict(result.profile), sort_keys=False))
-    jobs = [(*case, str(workdir), str(params)) for case in cases]
+    params, result = calibrate(calibration_path, model, workdir / 'robotino_params')
+    jobs = [(*case, str(workdir), params) for case in cases]
     with ProcessPoolExecutor(workers) as pool:
-        results = list(pool.map(_replay_case, jobs, chunksize=4))
+        scored = list(pool.map(_replay_case, jobs, chunksize=4))
     summary = (f'identified on {len(calibration)} green runs ({result.info["samples"]} samples): '
                'bound coverage ' + ', '.join(f'{f} {c:.1%}' for f, c in result.coverage.items()))
-    return summary, results
+    return summary, {v: [r[v] for r in scored] for v in VARIANTS}, residual_spread(result)

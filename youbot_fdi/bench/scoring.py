@@ -82,3 +82,27 @@ def _row(label, rows):
     return (f'{label:<18}{len(rows):>6}{sum(r["detected"] for r in rows):>10}'
             f'{sum(r["isolated"] for r in rows):>10}{sum(r["named"] for r in rows):>8}'
             f'{median:>12.0f}ms{p90:>9.0f}ms')
+
+
+def ablation(rows):
+    """The physics-only vs learned table (issue 12): one line per (suite, variant, results,
+    spread), spread = {family: RMS on the calibration recording} or None."""
+    lines = ['Ablation: physics-only vs learned corrections (same recordings, same bounds)',
+             f'  {"suite":<13}{"variant":<9}{"torque RMS":>11}{"observer RMS":>13}{"detected":>10}'
+             f'{"isolated":>10}{"median":>9}{"p90":>8}{"false alarms/h":>16}']
+    for suite, variant, results, spread in rows:
+        faulty = [r for r in results if r['fault'] and r.get('observable', True)]
+        delays = np.array([r['delay'] for r in faulty if r['detected'] and r['isolated']])
+        hours = sum(r['fault_free_seconds'] for r in results) / 3600.0
+        alarms = sum(r['false_alarms'] for r in results)
+        rms = (spread or {}).get(variant) or {}
+        lines.append(f'  {suite:<13}{variant:<9}{rms.get("torque", math.nan):>11.4g}'
+                     f'{rms.get("observer", math.nan):>13.4g}'
+                     f'{sum(r["detected"] for r in faulty):>6}/{len(faulty):<3}'
+                     f'{sum(r["isolated"] for r in faulty):>6}/{len(faulty):<3}'
+                     f'{(np.median(delays) * 1000 if len(delays) else math.nan):>7.0f}ms'
+                     f'{(np.percentile(delays, 90) * 1000 if len(delays) else math.nan):>6.0f}ms'
+                     f'{(alarms / hours if hours else math.nan):>16.1f}')
+    lines.append('  (RMS: residuals on the calibration recording [N·m, rad/s]; delays of faults '
+                 'detected and isolated)')
+    return '\n'.join(lines)

@@ -146,22 +146,16 @@ def _timed_replay(path, params):
 
 
 def _calibrate(variation, workdir, seed, mode):
-    """Record a nominal drive of the plant in ``mode`` and identify it; returns the parameter
-    file path."""
-    import yaml
-    from youbot_fdi.fdi.identify import identify
-    from youbot_fdi.fdi.settings import FdiSettings
-    from youbot_fdi.model.profile import profile_to_dict
+    """Record a nominal drive of the plant in ``mode`` and identify it; returns ({variant:
+    parameter file}, residual spread by variant)."""
+    from youbot_fdi.bench.calibration import calibrate, residual_spread
     from youbot_fdi.tmcm.recordings import record_drive
-    from youbot_fdi.settings import load_settings
     prior = load_model('youbot')
     plant = true_model(prior, variation)
     path = workdir / f'calibration_{variation.index}_{mode}'
     record_drive(path, plant, random_script(seed, CALIBRATION_DURATION), mode=mode, **_chain(variation))
-    result = identify(path, prior, load_settings(FdiSettings, 'fdi'))
-    params = workdir / f'params_{variation.index}_{mode}.yaml'
-    params.write_text(yaml.safe_dump(profile_to_dict(result.profile), sort_keys=False))
-    return params
+    params, result = calibrate(path, prior, workdir / f'params_{variation.index}_{mode}')
+    return params, residual_spread(result)
 
 
 def _chain(variation):
@@ -170,8 +164,9 @@ def _chain(variation):
 
 
 def _run_case(case):
-    """One recording + replay; returns a result dict (runs in a worker process)."""
-    from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
+    """One recording, replayed with each variant's parameters; returns {variant: result dict}
+    (runs in a worker process)."""
+    from youbot_fdi.tmcm.recordings import record_drive
     variation, mode, fault, wheel, seed, workdir, params = case
     prior = load_model('youbot')
     plant = true_model(prior, variation)
@@ -183,10 +178,17 @@ def _run_case(case):
     record_drive(path, plant, script, mode=mode, fault=fault, wheel=wheel, fault_time=injected_at,
                  **_chain(variation))
     from youbot_fdi.fdi.pipeline import build_pipeline
-    events = build_pipeline(params)[1].replay(path).events
     visible = injected_at
     if fault == 'runaway':
         visible = _visible_time(plant, script, plant.wheel_names.index(wheel), injected_at, mode)
+    return {variant: _scored(build_pipeline(file)[1].replay(path).events, variation, mode, fault,
+                             wheel, duration, injected_at, visible, path, file)
+            for variant, file in params.items()}
+
+
+def _scored(events, variation, mode, fault, wheel, duration, injected_at, visible, path, params):
+    """The result dict of one replay."""
+    from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP
     onset = DEFAULT_START_STAMP + visible
     alarms = [e for e in events if e.level == 'ERROR']
     early = [e for e in alarms if fault is None or e.stamp < DEFAULT_START_STAMP + injected_at]
@@ -208,7 +210,9 @@ def _run_case(case):
 
 
 def run_fault_benchmark(variations=3, seed=0, workers=2, progress=print, workdir=None, modes=MODES):
-    """Run the benchmark; returns (variations, list of result dicts)."""
+    """Run the benchmark; returns (variations, {variant: list of result dicts}, residual spread by
+    variant of the nominal plant's first mode's calibration)."""
+    from youbot_fdi.bench.calibration import VARIANTS
     plants = make_variations(variations, seed)
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
         root = Path(workdir or tmp)
@@ -217,27 +221,28 @@ def run_fault_benchmark(variations=3, seed=0, workers=2, progress=print, workdir
         calibrations = [(v, mode) for v in plants for mode in modes]
         progress(f'calibrating {len(plants)} plants in {len(modes)} control modes with identify ...')
         with ProcessPoolExecutor(workers) as pool:
-            params = list(pool.map(_calibrate, [v for v, _ in calibrations], [root] * len(calibrations),
-                                   [seed + 1000 + v.index for v, _ in calibrations],
-                                   [mode for _, mode in calibrations]))
+            calibrated = list(pool.map(_calibrate, [v for v, _ in calibrations], [root] * len(calibrations),
+                                       [seed + 1000 + v.index for v, _ in calibrations],
+                                       [mode for _, mode in calibrations]))
             cases = []
-            for (v, mode), p in zip(calibrations, params):
-                cases.append((v, mode, None, None, seed + 10 * v.index, str(root), str(p)))
+            for (v, mode), (p, _) in zip(calibrations, calibrated):
+                cases.append((v, mode, None, None, seed + 10 * v.index, str(root), p))
                 for k, fault in enumerate(INJECTABLE):
                     for j, wheel in enumerate(wheels):
                         cases.append((v, mode, fault.value, wheel, seed + 100 * v.index + 10 * k + j,
-                                      str(root), str(p)))
-            results = []
+                                      str(root), p))
+            scored = []
             for n, result in enumerate(pool.map(_run_case, cases), 1):
-                results.append(result)
+                scored.append(result)
                 if n % 10 == 0 or n == len(cases):
                     progress(f'  {n}/{len(cases)} recordings')
+        results = {variant: [r[variant] for r in scored] for variant in VARIANTS}
         # Timed one at a time, in this process: a parallel worker would disturb the timings.
         progress('timing replay against decode-only ...')
-        for result in results:
+        for result in results[VARIANTS[0]]:
             result['replay_time'], result['decode_time'] = _timed_replay(result['path'],
                                                                         result['params'])
-    return plants, results
+    return plants, results, calibrated[0][1]
 
 
 def summarise(plants, results):
@@ -246,8 +251,8 @@ def summarise(plants, results):
     delays = np.array([r['delay'] for r in faulty if r['detected'] and r['isolated']])
     hours = sum(r['fault_free_seconds'] for r in results) / 3600.0
     false_alarms = sum(r['false_alarms'] for r in results)
-    replay = sum(r['replay_time'] for r in results)
-    decode = sum(r['decode_time'] for r in results)
+    replay = sum(r.get('replay_time', 0.0) for r in results)
+    decode = sum(r.get('decode_time', 0.0) for r in results)
     lines = ['Fault benchmark (youbot-fdi bench --faults)'] + ['  ' + p.describe() for p in plants]
     lines += ['', f'{"fault":<16}{"mode":<10}{"cases":>6}{"detected":>10}{"isolated":>10}{"named":>8}'
                   f'{"median delay":>14}{"p90 delay":>11}']

@@ -158,13 +158,9 @@ def _replay_recordings(workdir, progress, seconds):
     """The replay cases' recordings of one plant unlike the default profile (the fault
     benchmark's first random variation), and its parameter file identified from the fault-free
     one: {case: (recording, parameter file or None)}."""
-    import yaml
+    from youbot_fdi.bench.calibration import calibrate
     from youbot_fdi.bench.simulated import _chain, make_variations, random_script, true_model
-    from youbot_fdi.fdi.identify import identify
-    from youbot_fdi.fdi.settings import FdiSettings
     from youbot_fdi.model import load_model
-    from youbot_fdi.model.profile import profile_to_dict
-    from youbot_fdi.settings import load_settings
     from youbot_fdi.tmcm.recordings import record_drive
     variation = make_variations(2)[1]
     prior = load_model('youbot')
@@ -182,9 +178,7 @@ def _replay_recordings(workdir, progress, seconds):
         paths[name] = record_drive(workdir / name.replace(' ', '_').replace(',', '').replace('%', 'pc'),
                                    plant, script, **fault, **_chain(variation)).path
     progress('  identifying the plant from the fault-free recording')
-    params = workdir / 'params.yaml'
-    result = identify(paths['fault-free'], prior, load_settings(FdiSettings, 'fdi'))
-    params.write_text(yaml.safe_dump(profile_to_dict(result.profile), sort_keys=False))
+    params = calibrate(paths['fault-free'], prior, workdir / 'params')[0]['learned']
     cases = {name: (path, params) for name, path in paths.items()}
     cases['fault-free, no --params'] = (paths['fault-free'], None)
     return cases
@@ -262,6 +256,22 @@ def bench_start():
                        numpy, f'a fresh interpreter each; target <= {START_TARGET:g}x')
 
 
+LEARNED_TARGET_US = 20.0  # [µs] the learned correction per sample, all wheels (issue 12)
+
+
+def bench_learned():
+    """The learned torque correction evaluated for one sample of four wheels (what the live
+    observer adds per sample), against one numpy tanh of four values."""
+    from youbot_fdi.fdi.learned import FEATURES, TorqueCorrection
+    rng = np.random.default_rng(0)
+    correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.1), 0.05)
+    speed = rng.normal(size=4)
+    value = 1e6 / _rate(lambda: correction(speed))
+    baseline = 1e6 / _rate(lambda: np.tanh(speed))
+    return BenchResult('learned correction: one sample, 4 wheels', value, 'us', 'np.tanh of 4 values',
+                       baseline, f'target <= {LEARNED_TARGET_US:g} us')
+
+
 FUZZ_FRAMES = 100_000  # generated CAN frames per benchmark run (issue 17)
 
 
@@ -285,6 +295,7 @@ def run_all(progress=print):
     """Run every case; returns the results."""
     results = []
     for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can),
+                        ('learned', bench_learned),
                         ('start', bench_start), ('fuzz', lambda: bench_fuzz(progress)),
                         ('replay', lambda: bench_replay(progress)),
                         ('nodes', bench_nodes)):

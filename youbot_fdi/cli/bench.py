@@ -50,7 +50,8 @@ def run_faults(args, progress):
     """The fault benchmark's suites, each printed as it finishes, side by side in one format."""
     import tempfile
     from youbot_fdi.bench import independent, robotino
-    from youbot_fdi.bench.scoring import summarise
+    from youbot_fdi.bench.calibration import VARIANTS
+    from youbot_fdi.bench.scoring import ablation, summarise
     from youbot_fdi.bench.simulated import MODES, run_fault_benchmark, summarise as summarise_simulated
     modes = tuple(m.strip() for m in args.modes.split(',') if m.strip())
     suites = tuple(s.strip() for s in args.suites.split(',') if s.strip())
@@ -58,21 +59,27 @@ def run_faults(args, progress):
         print(f'youbot-fdi bench: error: --modes takes {",".join(MODES)} and --suites '
               f'{",".join(SUITES)}; got {args.modes!r}, {args.suites!r}', file=sys.stderr)
         return 2
+    rows = []  # the ablation table: (suite, variant, results, spread)
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as workdir:
         if 'simulated' in suites:
-            plants, results = run_fault_benchmark(args.variations, args.seed, args.workers, progress,
-                                                  modes=modes)
-            print(summarise_simulated(plants, results), flush=True)
+            plants, results, spread = run_fault_benchmark(args.variations, args.seed, args.workers,
+                                                          progress, modes=modes)
+            print(summarise_simulated(plants, results[VARIANTS[0]]), flush=True)
+            rows += [('simulated', v, results[v], spread) for v in VARIANTS]
         if 'independent' in suites:
-            line, results = independent.run_suite(workdir, progress, args.workers, args.seed)
-            print('\n' + summarise(f'Independent youBot simulator (both modes; {line})', results),
-                  flush=True)
+            line, results, spread = independent.run_suite(workdir, progress, args.workers, args.seed)
+            print('\n' + summarise(f'Independent youBot simulator (both modes; {line})',
+                                   results[VARIANTS[0]]), flush=True)
+            rows += [('independent', v, results[v], spread) for v in VARIANTS]
         if 'real' in suites:
             found = robotino.run_suite(workdir, progress, args.workers)
             if found is None:
                 print(f'\nReal data (Robotino): skipped, no data at {robotino.DEFAULT_DATA} '
                       f'(set ${robotino.ENV_DATA})', flush=True)
             else:
-                line, results = found
-                print('\n' + summarise(f'Real data, Festo Robotino ({line})', results), flush=True)
+                line, results, spread = found
+                print('\n' + summarise(f'Real data, Festo Robotino ({line})', results[VARIANTS[0]]),
+                      flush=True)
+                rows += [('real', v, results[v], spread) for v in VARIANTS]
+    print('\n' + ablation(rows), flush=True)
     return 0

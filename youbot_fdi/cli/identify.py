@@ -18,11 +18,17 @@ def add_parser(subparsers):
                     'gains and input delay (velocity mode), run the report\'s friction sweep, report the fit (NRMSE '
                     'per wheel) and learn the residual noise floors the thresholds use. Writes a '
                     'parameter file for `replay --params`. A damaged recording (cut short) is used as '
-                    'far as it can be read: exit status 3, with a line saying what was lost.')
+                    'far as it can be read: exit status 3, with a line saying what was lost. Unless '
+                    '--physics-only, also learns a correction of the physics (friction by direction '
+                    'of travel, youbot_fdi/fdi/learned.py) and fits the bounds to the corrected '
+                    'residuals.')
     parser.add_argument('bag', help='rosbag2 directory of nominal (fault-free) driving')
     parser.add_argument('--output', required=True, help='parameter file to write (YAML)')
     parser.add_argument('--profile', default='youbot', help='prior profile (default: youbot)')
     parser.add_argument('--no-gains', action='store_true', help='do not fit the firmware PI gains and input delay')
+    parser.add_argument('--physics-only', action='store_true',
+                        help='do not learn corrections of the physics (the direction-dependent '
+                             'friction the model misses); bounds from the physics residuals alone')
     parser.add_argument('--plot', metavar='FILE', help='write the friction sweep (Fig. 5.10) here')
     parser.set_defaults(run=run)
 
@@ -36,7 +42,8 @@ def run(args):
     from youbot_fdi.model.profile import load_model, profile_to_dict
     from youbot_fdi.settings import load_settings
     settings = load_settings(FdiSettings, 'fdi')
-    result = identify(args.bag, load_model(args.profile), settings, fit_gains=not args.no_gains)
+    result = identify(args.bag, load_model(args.profile), settings, fit_gains=not args.no_gains,
+                      learn=not args.physics_only)
     profile = result.profile
     data = profile_to_dict(profile)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
@@ -63,6 +70,16 @@ def run(args):
               + ', '.join(f'{v:.2%}' for v in result.nrmse_commands))
     verdict = 'holds' if np.all(result.nrmse_currents < 0.01) else 'does not hold'
     print(f'  the report\'s "error below 1 %" {verdict} for this recording')
+    learning = result.info.get('learning')
+    if isinstance(learning, dict):
+        for note in learning['notes']:
+            print(f'  learning: {note}')
+        spread = learning['residual_rms']
+        if spread:
+            print('  learned correction (friction by direction and speed): residual RMS physics -> '
+                  'learned: ' + ', '.join(f'{family} {spread["physics"][family]:.4g} -> '
+                                          f'{spread["learned"][family]:.4g}'
+                                          for family in spread['physics']))
     print('  bound floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()
                                         if k.endswith('_sigma')))
     print(f'  bounds: the {settings.bound_quantile:.0%} quantile of |r| on the operating point, '

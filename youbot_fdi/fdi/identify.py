@@ -34,6 +34,7 @@ import scipy.sparse
 
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
+from youbot_fdi.fdi.learned import fit_torque_correction
 from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
@@ -305,6 +306,26 @@ def fit_bounds(model, arrays, settings):
     return learned, coverage
 
 
+def learn_corrections(model, arrays, settings):
+    """The learned torque correction (:mod:`youbot_fdi.fdi.learned`) of ``model`` on this nominal
+    recording. Returns (the ``learned`` profile section or None, notes to print, residual spread:
+    {'physics' | 'learned': {family: RMS over the recording and the wheels}} or None)."""
+    physics = run_generator(model, arrays, settings)
+    index = np.searchsorted(arrays.time, physics.stamp)
+    mean_speed = 0.5 * (arrays.velocity[index] + arrays.velocity[np.maximum(index - 1, 0)])
+    correction, notes = fit_torque_correction(mean_speed, physics.values['torque'],
+                                              model.dynamics.parameters.coulomb_velocity_scale,
+                                              settings.torque_sigma)
+    if correction is None:
+        return None, notes, None
+    learned = {'torque': correction.to_mapping()}
+    corrected = run_generator(PlatformModel(replace(model.profile, learned=learned)), arrays, settings)
+    spread = {name: {family: float(np.sqrt(np.nanmean(batch.values[family] ** 2)))
+                     for family in batch.values}
+              for name, batch in (('physics', physics), ('learned', corrected))}
+    return learned, notes, spread
+
+
 @dataclass(frozen=True)
 class IdentificationResult:
     """What ``identify`` found."""
@@ -319,8 +340,9 @@ class IdentificationResult:
     damage: object = None  # youbot_fdi.bag.salvage.Damage when the recording was read in part
 
 
-def identify(path, prior_model, settings, fit_gains=True):
-    """Identify a model from the recording at ``path``, starting from ``prior_model``."""
+def identify(path, prior_model, settings, fit_gains=True, learn=True):
+    """Identify a model from the recording at ``path``, starting from ``prior_model``; with
+    ``learn``, also the learned corrections of the physics (issue 12) before the bounds."""
     arrays = read_arrays(path, prior_model)
     dynamics, info, _ = fit_dynamics(arrays, prior_model)
     interval = float(np.median(np.diff(arrays.time)))
@@ -348,6 +370,11 @@ def identify(path, prior_model, settings, fit_gains=True):
     if delay is not None:
         settings = replace(settings, input_delay=delay)
     fdi, coverage = fit_bounds(model, arrays, settings)
+    learned, notes, spread = learn_corrections(model, arrays, settings) if learn else (None, [], None)
+    if learned is not None:
+        model = PlatformModel(replace(model.profile, learned=learned))
+    info['learning'] = {'notes': notes, 'residual_rms': spread} if learn else 'physics only'
+
     fdi['sample_interval'] = interval
     if delay is not None:
         fdi['input_delay'] = delay

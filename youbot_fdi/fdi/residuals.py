@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from youbot_fdi.fdi.learned import TorqueCorrection
 from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, run_lengths,
                                        scalar_recursion)
 from youbot_fdi.model.dynamics import zoh_discretize
@@ -260,6 +261,10 @@ class ResidualGenerator:
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
+        learned = (model.profile.learned or {}).get('torque')
+        #: the learned torque correction (youbot_fdi.fdi.learned), None: physics only
+        self.correction = (None if learned is None or settings.physics_only else
+                           TorqueCorrection.from_mapping(learned, self.n, str(model.profile.source)))
         self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
         self.signed_effort = drive.signed_effort
         #: one encoder tick at the wheel [rad]
@@ -479,12 +484,16 @@ class ResidualGenerator:
         return features @ self._coefficients[family]
 
     def _explained(self, velocity, prev_velocity, phi, gamma_inv):
-        """(explained torque, its friction part, Coulomb torque, mean speed) over one interval:
-        the torque the exactly discretised dynamics need for the measured speed change."""
+        """(explained torque, its physics friction part, Coulomb torque, mean speed) over one
+        interval: the torque the exactly discretised dynamics need for the measured speed change,
+        with the learned correction (if any) in the explained and Coulomb torques only."""
         mean_speed = 0.5 * (velocity + prev_velocity)
         coulomb = self._coulomb(mean_speed)
+        friction = self.friction * mean_speed + coulomb
+        if self.correction is not None:  # learned friction the physics misses (see fdi/learned.py)
+            coulomb = coulomb + self.correction(mean_speed)
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
-        return explained, self.friction * mean_speed + coulomb, coulomb, mean_speed
+        return explained, friction, coulomb, mean_speed
 
     def _signed(self, torque, reference):
         """The measured torque; a magnitude (``signed_effort: false``) takes the sign of

@@ -22,6 +22,7 @@ class FdiSettings:
     """Units in the comments; see ``config/fdi.yaml`` for the reasoning behind the defaults."""
 
     profile: str = 'youbot'
+    physics_only: bool = False  # ignore learned corrections in a parameter file (ablation)
     residual_file: str = ''  # default: config/residuals/<profile's structural model>.yaml
     # torque_<w>: measured minus explained wheel torque [N·m]
     torque_sigma: float = 0.04

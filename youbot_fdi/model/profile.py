@@ -32,6 +32,7 @@ Schema (units in brackets)::
       loop: discrete|continuous           # optional (discrete)
     fdi: {...}                            # optional: FDI settings (config/fdi.yaml keys)
     identification: {...}                 # optional: how `identify` got these values
+    learned: {torque: {...}}              # optional: learned corrections (youbot_fdi.fdi.learned)
 """
 from dataclasses import dataclass
 import math
@@ -136,6 +137,7 @@ class ModelProfile:
     source: str = ''
     fdi: dict = None  # optional FDI settings learned by `identify` (config/fdi.yaml keys)
     identification: dict = None  # optional record of how the parameters were identified
+    learned: dict = None  # optional learned model corrections (youbot_fdi.fdi.learned), by family
 
 
 class PlatformModel:
@@ -242,7 +244,8 @@ def parse_profile(data, source='<profile>'):
         firmware=_parse_firmware(top.section('firmware')),
         source=source,
         fdi=_optional_mapping(top, 'fdi'),
-        identification=_optional_mapping(top, 'identification'))
+        identification=_optional_mapping(top, 'identification'),
+        learned=_optional_mapping(top, 'learned'))
     top.finish()
     return profile
 
@@ -304,5 +307,6 @@ def profile_to_dict(profile):
                      'loop': profile.firmware.loop.value},
         **({'fdi': dict(profile.fdi)} if profile.fdi else {}),
         **({'identification': dict(profile.identification)} if profile.identification else {}),
+        **({'learned': dict(profile.learned)} if profile.learned else {}),
     }
 

@@ -1,0 +1,96 @@
+"""Learned corrections of the physics (issue 12): the fit, its guard, the numpy evaluation shared
+by the live path and replay, and identify's --physics-only."""
+import numpy as np
+import pytest
+
+from youbot_fdi.errors import ConfigError
+from youbot_fdi.fdi.learned import FEATURES, fit_torque_correction, TorqueCorrection
+
+SCALE = 0.05  # [rad/s]
+
+
+def synthetic(rng, truth, rows=3000, noise=0.005):
+    speed = rng.uniform(-6.0, 6.0, (rows, truth.shape[0]))
+    sign = np.tanh(speed / SCALE)
+    residual = (truth[:, 0] * sign + truth[:, 1] * np.abs(sign) + truth[:, 2] * speed
+                + rng.normal(scale=noise, size=speed.shape))
+    return speed, residual
+
+
+def test_the_fit_recovers_friction_that_differs_by_direction():
+    rng = np.random.default_rng(0)
+    truth = np.array([[0.05, 0.03, 0.002], [0.04, -0.02, 0.0], [0.06, 0.01, -0.003], [0.05, 0.0, 0.001]])
+    speed, residual = synthetic(rng, truth)
+    correction, notes = fit_torque_correction(speed, residual, SCALE, torque_floor=0.01)
+    assert notes == []
+    np.testing.assert_allclose(correction.weights, truth, atol=3e-3)
+    left = residual - correction(speed)
+    assert np.sqrt(np.mean(left ** 2)) < 0.3 * np.sqrt(np.mean(residual ** 2))
+    # Bounded by what calibration saw: far outside it, the correction does not grow.
+    np.testing.assert_array_less(np.abs(correction(np.full(4, 100.0))), correction.limit + 1e-12)
+
+
+def test_one_sample_equals_a_block():
+    rng = np.random.default_rng(1)
+    correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.5), SCALE)
+    block = rng.normal(scale=2.0, size=(50, 4))
+    np.testing.assert_allclose(np.array([correction(row) for row in block]), correction(block))
+
+
+def test_a_wheel_that_departs_alone_is_not_learned():
+    """A persistent single-wheel departure in the 'nominal' recording (a fault) is refused."""
+    rng = np.random.default_rng(2)
+    truth = np.array([[0.01, 0.0, 0.0], [0.01, 0.0, 0.0], [0.2, 0.0, 0.01], [0.01, 0.0, 0.0]])
+    speed, residual = synthetic(rng, truth)
+    correction, notes = fit_torque_correction(speed, residual, SCALE, torque_floor=0.02)
+    assert len(notes) == 1 and 'wheel 2' in notes[0] and 'fault' in notes[0]
+    assert np.all(correction.weights[2] == 0.0) and correction.limit[2] == 0.0
+    assert np.any(correction.weights[0] != 0.0)
+
+
+def test_too_little_motion_learns_nothing():
+    correction, notes = fit_torque_correction(np.zeros((500, 4)), np.zeros((500, 4)), SCALE, 0.01)
+    assert correction is None and 'not learned' in notes[0]
+
+
+def test_noise_alone_learns_nothing():
+    rng = np.random.default_rng(4)
+    speed = rng.uniform(-6.0, 6.0, (3000, 4))
+    correction, notes = fit_torque_correction(speed, rng.normal(scale=0.02, size=speed.shape), SCALE, 0.01)
+    assert correction is None and 'physics only' in notes[-1]
+
+
+@pytest.mark.parametrize('bad', [{'weights': [[0.0] * FEATURES] * 3, 'limit': [0.1] * 4, 'speed_scale': 0.1},
+                                 {'weights': [[0.0] * FEATURES] * 4, 'limit': [-1.0] * 4, 'speed_scale': 0.1},
+                                 {'weights': [[0.0] * FEATURES] * 4, 'limit': [0.1] * 4},
+                                 {'weights': [[np.nan] * FEATURES] * 4, 'limit': [0.1] * 4, 'speed_scale': 0.1}])
+def test_a_malformed_learned_section_is_a_clear_error(bad):
+    with pytest.raises(ConfigError, match='learned.torque'):
+        TorqueCorrection.from_mapping(bad, 4, 'params.yaml')
+
+
+def test_identify_learns_and_physics_only_does_not(tmp_path):
+    """identify on a drive of the independent simulator whose Coulomb friction differs by
+    direction (what the model lacks): the parameter file carries the correction, the pipeline uses it, physics_only ignores it and
+    --physics-only writes none; the learned residual spread is lower."""
+    import yaml
+    from youbot_fdi.bench.independent_sim import simulate
+    from youbot_fdi.cli.main import main
+    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.fdi.pipeline import configure
+    from youbot_fdi.fdi.residuals import ResidualGenerator
+    drive = [(0.3, 0.0, 0.0, 1.5), (-0.3, 0.0, 0.0, 1.5), (0.0, 0.25, 0.0, 1.5), (0.0, -0.25, 0.0, 1.5),
+             (0.0, 0.0, 0.9, 1.5), (0.0, 0.0, -0.9, 1.5)] * 2
+    simulate(tmp_path / 'nominal', drive, seed=3, coulomb=0.05, coulomb_asymmetry=0.6)
+    learned, physics = tmp_path / 'learned.yaml', tmp_path / 'physics.yaml'
+    assert main(['identify', str(tmp_path / 'nominal'), '--output', str(learned)]) == 0
+    assert main(['identify', str(tmp_path / 'nominal'), '--output', str(physics), '--physics-only']) == 0
+    data = yaml.safe_load(learned.read_text())
+    assert 'torque' in data['learned'] and 'learned' not in yaml.safe_load(physics.read_text())
+    spread = data['identification']['learning']['residual_rms']
+    assert spread['learned']['torque'] < spread['physics']['torque']
+    assert build_pipeline(learned)[1].generator.correction is not None
+    model, settings = configure(FdiSettings(physics_only=True), learned)
+    assert ResidualGenerator(model, settings).correction is None
+    assert build_pipeline(physics)[1].generator.correction is None
