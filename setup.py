@@ -20,6 +20,8 @@ EXTRAS = {
     'plot': ['matplotlib>=3.6'],
     # Cross-check of our own structural analysis; heavy (sympy, scikit-learn): never on the robot path.
     'structure': ['faultdiagnosistoolbox>=0.12'],
+    # youbot-fdi fleet: a fleet's recordings on a local or remote Dask cluster; never on the robot.
+    'fleet': ['dask[distributed]>=2024.1'],
     # pytrinamic: Trinamic's own TMCL client, driven against the virtual youBot in the tests.
     'test': ['pytest>=7', 'hypothesis>=6', 'colcon-common-extensions', 'pytrinamic>=0.2.26'],
 }

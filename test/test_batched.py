@@ -135,8 +135,8 @@ def test_chunks_equal_reading_message_by_message(tmp_path, model, typestore):
 
 @pytest.fixture(scope='module')
 def recordings(tmp_path_factory, model):
-    """A stuck wheel (the PI loop saturates), friction, a runaway, a freeze, a silent module and
-    current mode."""
+    """A stuck wheel (the PI loop saturates), friction, a runaway, a freeze, a silent module,
+    current mode, and faults raised early, latched, cleared and raised again on two wheels."""
     _, script = load_script()
     root = tmp_path_factory.mktemp('batched')
     return {
@@ -152,6 +152,10 @@ def recordings(tmp_path_factory, model):
                                wheel='wheel_joint_fr', fault_time=8.0).path,
         'effort': record_drive(root / 'effort', model, script, mode='effort', fault='torque_loss',
                                wheel='wheel_joint_br', fault_time=5.0).path,
+        'relapse': record_drive(root / 'relapse', model, script, fault='encoder_freeze',
+                                wheel='wheel_joint_fl', fault_time=0.5,
+                                more_faults=[(None, None, 2.5), ('encoder_freeze', 'wheel_joint_fl', 6.0),
+                                             (None, None, 7.5), ('stuck', 'wheel_joint_br', 9.0)]).path,
     }
 
 
@@ -174,7 +178,7 @@ def sample_by_sample(path, model, settings):
 
 @pytest.mark.parametrize('name, input_delay', [('stuck', 0.0), ('friction', 0.0), ('runaway', 0.0),
                                                ('runaway', 0.03), ('freeze', 0.0), ('silent', 0.0),
-                                               ('effort', 0.02)])
+                                               ('effort', 0.02), ('relapse', 0.0)])
 def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_delay):
     _, pipeline = build_pipeline()
     pipeline = FdiPipeline(model, replace(pipeline.settings, input_delay=input_delay), keep_frames=True)
@@ -186,6 +190,10 @@ def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_d
     frames, expected = sample_by_sample(recordings[name], model, pipeline.settings)
     assert [e.to_dict() for e in events] == [e.to_dict() for e in expected]
     assert any(e.level == 'ERROR' for e in events)
+    if name == 'relapse':  # raised early, latched, cleared, raised again; then another wheel
+        assert [(e.level, e.wheel) for e in events if e.wheel][:3] == [
+            ('ERROR', 'wheel_joint_fl'), ('OK', 'wheel_joint_fl'), ('ERROR', 'wheel_joint_fl')]
+        assert any(e.level == 'ERROR' and e.wheel == 'wheel_joint_br' for e in events)
     batch = pipeline.residuals()
     np.testing.assert_array_equal(batch.stamp, [f.stamp for f in frames])
     for family in FAMILIES:

@@ -13,7 +13,8 @@ PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'README.md', 'resource'
 CORE_MODULES = ('youbot_fdi.model.simulation', 'youbot_fdi.structure.analysis', 'youbot_fdi.fdi.residuals',
                 'youbot_fdi.fdi.decision', 'youbot_fdi.fdi.pipeline', 'youbot_fdi.fdi.identify')
 
-BLOCKER = """
+# Run in a fresh interpreter: the top-level packages named in argv[1] cannot be imported.
+BLOCK_IMPORTS = """
 import sys
 blocked = set(sys.argv[1].split(','))
 class Block:
@@ -21,6 +22,8 @@ class Block:
         if name.split('.')[0] in blocked:
             raise ImportError('blocked: ' + name)
 sys.meta_path.insert(0, Block())
+"""
+BLOCKER = BLOCK_IMPORTS + """
 import importlib
 for module in sys.argv[2:]:
     importlib.import_module(module)
@@ -44,14 +47,7 @@ def test_offline_command_line_imports_without_rclpy():
     assert result.returncode == 0, result.stderr
 
 
-HELP = """
-import sys
-blocked = set(sys.argv[1].split(','))
-class Block:
-    def find_spec(self, name, path=None, target=None):
-        if name.split('.')[0] in blocked:
-            raise ImportError('blocked: ' + name)
-sys.meta_path.insert(0, Block())
+HELP = BLOCK_IMPORTS + """
 from youbot_fdi.cli.main import build_parser, main
 commands = [None] + sorted(build_parser()._subparsers._group_actions[0].choices)
 for command in commands:
@@ -135,22 +131,23 @@ def test_every_node_parameter_file_loads_into_its_settings():
 
 
 def test_imports_run_downward():
-    """Every import runs downward: cli and bench -> nodes -> fdi, tmcm, structure, bag -> model and
-    the top-level helpers (samples, topics, settings, faults, errors), at module level or inside a
-    function."""
+    """Every import runs downward: cli and bench -> nodes, fleet -> fdi, tmcm, structure, bag ->
+    model and the top-level helpers (samples, topics, settings, faults, errors), at module level or
+    inside a function."""
     import ast
+    adapters = ('cli', 'bench', 'nodes', 'fleet')
     above = {  # a layer may not import these
-        'model': ('cli', 'bench', 'nodes', 'fdi', 'tmcm', 'structure', 'bag'),
-        'bag': ('cli', 'bench', 'nodes', 'fdi', 'tmcm', 'structure'),
-        'fdi': ('cli', 'bench', 'nodes'), 'tmcm': ('cli', 'bench', 'nodes'),
-        'structure': ('cli', 'bench', 'nodes'), 'nodes': ('cli', 'bench'),
+        'model': adapters + ('fdi', 'tmcm', 'structure', 'bag'),
+        'bag': adapters + ('fdi', 'tmcm', 'structure'),
+        'fdi': adapters, 'tmcm': adapters, 'structure': adapters,
+        'nodes': ('cli', 'bench', 'fleet'), 'fleet': ('cli', 'bench', 'nodes'),
     }
     offenders = []
     for path in sorted((REPO / 'youbot_fdi').rglob('*.py')):
         relative = path.relative_to(REPO / 'youbot_fdi').parts
         layer = relative[0] if len(relative) > 1 else 'helpers'
         forbidden = tuple(f'youbot_fdi.{name}' for name in above.get(
-            layer, ('cli', 'bench', 'nodes', 'fdi', 'tmcm', 'structure', 'bag', 'model')))
+            layer, adapters + ('fdi', 'tmcm', 'structure', 'bag', 'model')))
         if layer in ('cli', 'bench'):
             continue
         for node in ast.walk(ast.parse(path.read_text())):

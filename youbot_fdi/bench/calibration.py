@@ -6,7 +6,6 @@ The two files differ only in the ``learned`` section: the bounds come from the p
 in both (youbot_fdi/fdi/learned.py says why).
 """
 from dataclasses import replace
-from pathlib import Path
 
 VARIANTS = ('learned', 'physics')  # the first is the product's default
 
@@ -14,19 +13,15 @@ VARIANTS = ('learned', 'physics')  # the first is the product's default
 def calibrate(recording, prior, out_stem, settings=None):
     """``identify`` ``recording`` from the ``prior`` model; returns ({variant: parameter file},
     IdentificationResult). Files are written beside ``out_stem`` (``<stem>_<variant>.yaml``)."""
-    import yaml
-
     from youbot_fdi.fdi.identify import identify
     from youbot_fdi.fdi.settings import FdiSettings
-    from youbot_fdi.model.profile import profile_to_dict
+    from youbot_fdi.model.profile import save_profile
     from youbot_fdi.settings import load_settings
     result = identify(recording, prior, settings or load_settings(FdiSettings, 'fdi'))
     paths = {}
     for variant in VARIANTS:
         profile = result.profile if variant == 'learned' else replace(result.profile, learned=None)
-        path = Path(f'{out_stem}_{variant}.yaml')
-        path.write_text(yaml.safe_dump(profile_to_dict(profile), sort_keys=False))
-        paths[variant] = str(path)
+        paths[variant] = str(save_profile(profile, f'{out_stem}_{variant}.yaml'))
     return paths, result
 
 

@@ -293,11 +293,13 @@ def bench_fuzz(progress=print, frames=FUZZ_FRAMES):
 
 def run_all(progress=print):
     """Run every case; returns the results."""
+    from youbot_fdi.bench.fleet import bench_fleet
     results = []
     for label, case in (('model', bench_model), ('structure', bench_structure), ('can', bench_can),
                         ('learned', bench_learned),
                         ('start', bench_start), ('fuzz', lambda: bench_fuzz(progress)),
                         ('replay', lambda: bench_replay(progress)),
+                        ('fleet', lambda: bench_fleet(progress)),
                         ('nodes', bench_nodes)):
         progress(f'running {label} ...')
         outcome = case()

@@ -6,9 +6,6 @@ import sys
 from youbot_fdi.cli.status import DAMAGED
 
 NAME = 'identify'
-HEADER = ('# Identified by `youbot-fdi identify`: a parameter profile (config/profiles schema) plus\n'
-          '# learned FDI noise floors (fdi) and the fit record (identification).\n'
-          '# Use it with: youbot-fdi replay BAG --params THIS_FILE\n')
 
 
 def add_parser(subparsers):
@@ -35,19 +32,16 @@ def add_parser(subparsers):
 
 def run(args):
     import numpy as np
-    import yaml
 
     from youbot_fdi.fdi.identify import identify
     from youbot_fdi.fdi.settings import FdiSettings
-    from youbot_fdi.model.profile import load_model, profile_to_dict
+    from youbot_fdi.model.profile import load_model, save_profile
     from youbot_fdi.settings import load_settings
     settings = load_settings(FdiSettings, 'fdi')
     result = identify(args.bag, load_model(args.profile), settings, fit_gains=not args.no_gains,
                       learn=not args.physics_only)
     profile = result.profile
-    data = profile_to_dict(profile)
-    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.output).write_text(HEADER + yaml.safe_dump(data, sort_keys=False, width=100))
+    save_profile(profile, args.output)
     dyn = profile.dynamics
     if result.damage is not None:
         print(f'{args.bag}: {result.damage.describe()}', file=sys.stderr)

@@ -309,15 +309,17 @@ def fit_bounds(model, arrays, settings):
 def learn_corrections(model, arrays, settings):
     """The learned torque correction (:mod:`youbot_fdi.fdi.learned`) of ``model`` on this nominal
     recording. Returns (the ``learned`` profile section or None, notes to print, residual spread:
-    {'physics' | 'learned': {family: RMS over the recording and the wheels}} or None)."""
+    {'physics' | 'learned': {family: RMS over the recording and the wheels}}, the same twice when
+    nothing is learned)."""
     physics = run_generator(model, arrays, settings)
     index = np.searchsorted(arrays.time, physics.stamp)
     mean_speed = 0.5 * (arrays.velocity[index] + arrays.velocity[np.maximum(index - 1, 0)])
     correction, notes = fit_torque_correction(mean_speed, physics.values['torque'],
                                               model.dynamics.parameters.coulomb_velocity_scale,
                                               settings.torque_sigma)
-    if correction is None:
-        return None, notes, None
+    if correction is None:  # the learned variant is the physics one
+        spread = {family: float(np.sqrt(np.nanmean(values ** 2))) for family, values in physics.values.items()}
+        return None, notes, {'physics': spread, 'learned': dict(spread)}
     learned = {'torque': correction.to_mapping()}
     corrected = run_generator(PlatformModel(replace(model.profile, learned=learned)), arrays, settings)
     spread = {name: {family: float(np.sqrt(np.nanmean(batch.values[family] ** 2)))

@@ -10,7 +10,8 @@ from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend, or None when matplotlib is not installed."""
     try:
         import matplotlib
         matplotlib.use('Agg')
@@ -22,7 +23,7 @@ def _pyplot():
 
 def plot_friction_sweep(sweep, path):
     """Report Fig. 5.10: RMSE of the current-driven prediction against the viscous friction."""
-    plt = _pyplot()
+    plt = pyplot()
     if plt is None:
         return None
     values, rmse = sweep
@@ -53,7 +54,7 @@ def _series(residuals):
 
 
 def _figures(directory, model, data, events):
-    plt = _pyplot()
+    plt = pyplot()
     if plt is None or not len(data['time']):
         return []
     written = []

@@ -281,6 +281,19 @@ def load_model(name_or_path):
     return PlatformModel(load_profile(name_or_path))
 
 
+PARAMETER_FILE_HEADER = ('# Identified by `youbot-fdi identify`: a parameter profile (config/profiles schema) plus\n'
+                         '# learned FDI noise floors (fdi), corrections (learned) and the fit record\n'
+                         '# (identification). Use it with: youbot-fdi replay BAG --params THIS_FILE\n')
+
+
+def save_profile(profile, path, header=PARAMETER_FILE_HEADER):
+    """Write ``profile`` as a parameter file (YAML, :func:`profile_to_dict`); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(header + yaml.safe_dump(profile_to_dict(profile), sort_keys=False, width=100))
+    return path
+
+
 def profile_to_dict(profile):
     """The inverse of :func:`parse_profile`: a plain mapping ready for YAML."""
     wheels = [{'name': w.name, 'x': w.x, 'y': w.y, 'heading_deg': math.degrees(w.heading),

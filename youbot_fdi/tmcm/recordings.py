@@ -51,7 +51,8 @@ def record_drive(path, model, script, mode='velocity', fault=None, wheel=None, f
     fault, wheel, fault_time : optional
         A FaultKind to inject on ``wheel`` at ``fault_time`` seconds into the drive.
     more_faults : sequence of (fault, wheel, fault_time)
-        Further faults (other wheels), injected likewise; not in the returned ground truth.
+        Further faults, injected likewise (a fault of None clears every injected fault); not in
+        the returned ground truth.
     base_settings
         Overrides of the virtual base's settings (noise, fault magnitudes, ...).
 
@@ -75,7 +76,11 @@ def record_drive(path, model, script, mode='velocity', fault=None, wheel=None, f
                 rig.base.inject(fault, wheel)
                 onset = start_stamp + rig.base.time
             while pending and times[k] >= pending[0][2]:
-                rig.base.inject(*pending.pop(0)[:2])
+                kind, faulty, _ = pending.pop(0)
+                if kind is None:
+                    rig.base.clear_faults()
+                else:
+                    rig.base.inject(kind, faulty)
             writer.wheel_command(start_stamp + rig.base.time, mode, command)
             sample = rig.step(mode, command)
             if sample is not None:

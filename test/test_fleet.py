@@ -1,0 +1,109 @@
+"""``youbot-fdi fleet`` on a LocalCluster of 2 workers: recordings of two robots, one broken; the
+events equal `replay`'s, a CSV and an HTML report, resume, and the friction trend (issue 16)."""
+from dataclasses import replace
+import csv
+import json
+
+import pytest
+
+pytest.importorskip('distributed', reason='the fleet extra is not installed (pip install "youbot_fdi[fleet]")')
+
+from youbot_fdi.cli.main import main  # noqa: E402
+from youbot_fdi.model import load_model  # noqa: E402
+from youbot_fdi.model.profile import PlatformModel  # noqa: E402
+from youbot_fdi.model.scenario import load_script  # noqa: E402
+from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive  # noqa: E402
+
+DAY = 86400.0
+RAMP = (1.0, 1.25, 1.5, 1.75)  # friction of robot_a's wheels, one recording a day
+DRIVE = 6.0  # [s]
+
+
+def with_friction(model, factor):
+    dyn = model.profile.dynamics
+    scaled = replace(dyn, viscous_friction=tuple(v * factor for v in dyn.viscous_friction))
+    return PlatformModel(replace(model.profile, dynamics=scaled))
+
+
+@pytest.fixture(scope='module')
+def fleet_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp('fleet')
+    model = load_model('youbot')
+    script = load_script(duration=DRIVE)[1]
+    for day, factor in enumerate(RAMP):
+        record_drive(root / 'robot_a' / f'day{day}', with_friction(model, factor), script,
+                     start_stamp=DEFAULT_START_STAMP + day * DAY, storage='mcap' if day % 2 else 'sqlite3')
+    record_drive(root / 'robot_b' / '2026-11-01' / 'run1', model, script, fault='stuck',
+                 wheel='wheel_joint_br', fault_time=3.0, start_stamp=DEFAULT_START_STAMP + 0.5 * DAY)
+    record_drive(root / 'robot_b' / '2026-11-02' / 'run1', model, script,
+                 start_stamp=DEFAULT_START_STAMP + 1.5 * DAY)
+    broken = root / 'robot_b' / '2026-11-03' / 'broken'
+    broken.mkdir(parents=True)
+    (broken / 'broken_0.mcap').write_bytes(b'this is not a recording')
+    return root
+
+
+def rows_of(out):
+    with open(out / 'recordings.csv', newline='') as handle:
+        return {row['recording']: row for row in csv.DictReader(handle)}
+
+
+def test_a_fleet_run_equals_replay_reports_and_resumes(fleet_root, tmp_path, capsys):
+    out = tmp_path / 'out'
+    assert main(['fleet', str(fleet_root), '--output', str(out), '--workers', '2']) == 0
+    printed = capsys.readouterr().out
+    rows = rows_of(out)
+    assert len(rows) == 7
+    broken = rows['robot_b__2026-11-03__broken']
+    assert broken['status'] == 'error' and 'not a readable rosbag2 recording' in broken['error']
+    assert {r['robot'] for r in rows.values()} == {'robot_a', 'robot_b'}
+    # Events identical to what `replay` writes for each recording.
+    for name, row in rows.items():
+        if row['status'] != 'ok':
+            continue
+        path = fleet_root / name.replace('__', '/')
+        assert main(['replay', str(path), '--events', str(tmp_path / 'replay.jsonl')]) == 0
+        assert (out / 'events' / f'{name}.jsonl').read_text() == (tmp_path / 'replay.jsonl').read_text()
+    stuck = rows['robot_b__2026-11-01__run1']
+    assert 'stuck@wheel_joint_br' in stuck['faults']
+    # The friction ramp of robot_a is flagged on its wheels, robot_b has too few recordings.
+    friction = [float(rows[f'robot_a__day{d}']['friction_wheel_joint_fl']) for d in range(len(RAMP))]
+    assert friction == sorted(friction) and friction[-1] > 1.5 * friction[0]
+    assert 'friction rising: robot_a wheel_joint_fl' in printed and 'friction rising: robot_b' not in printed
+    report = (out / 'report.html').read_text()
+    assert 'robot_a/wheel_joint_fl' in report and 'friction.png' in report
+    assert (out / 'friction.png').is_file() and (out / 'faults.png').is_file()
+    capsys.readouterr()
+
+    # Resume: nothing to do; one row removed: that recording only.
+    assert main(['fleet', str(fleet_root), '--output', str(out), '--workers', '2']) == 0
+    assert '0 analysed' in capsys.readouterr().out
+    (out / 'rows' / 'robot_a__day2.json').unlink()
+    assert main(['fleet', str(fleet_root), '--output', str(out), '--workers', '1']) == 0
+    assert '1 analysed' in capsys.readouterr().out
+    assert json.loads((out / 'rows' / 'robot_a__day2.json').read_text())['status'] == 'ok'
+
+
+def test_without_recordings_or_with_a_dead_scheduler_it_says_why(tmp_path, capsys):
+    (tmp_path / 'empty').mkdir()
+    assert main(['fleet', str(tmp_path / 'empty'), '--output', str(tmp_path / 'o')]) == 1
+    assert 'no rosbag2 recording' in capsys.readouterr().err
+    assert main(['fleet', str(tmp_path / 'empty'), '--output', str(tmp_path / 'o'),
+                 '--scheduler', 'tcp://127.0.0.1:1']) == 1
+    assert 'no Dask scheduler answers' in capsys.readouterr().err
+
+
+def test_the_trend_test_flags_a_rise_and_not_noise():
+    import numpy as np
+    from youbot_fdi.fleet.settings import FleetSettings
+    from youbot_fdi.fleet.trend import friction_trends
+    rng = np.random.default_rng(0)
+    rows = []
+    for day in range(10):
+        start = DEFAULT_START_STAMP + day * DAY
+        rows.append({'robot': 'worn', 'start': start, 'wheels': ['a', 'b'],
+                     'friction': [0.1 * (1 + 0.05 * day) + rng.normal(scale=0.002), 0.1 + rng.normal(scale=0.002)]})
+    trends = {t.wheel: t for t in friction_trends(rows, FleetSettings())}
+    assert trends['a'].flagged and trends['a'].rate == pytest.approx(0.05 / 1.225, rel=0.2)
+    assert not trends['b'].flagged
+    assert friction_trends(rows[:2], FleetSettings()) == []  # too few recordings
