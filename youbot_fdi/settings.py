@@ -11,6 +11,7 @@ import yaml
 
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
+from youbot_fdi.yamlio import load_yaml
 
 ROS_PARAMETERS = 'ros__parameters'
 WILDCARD = '/**'
@@ -87,7 +88,7 @@ def load_settings(cls, node_name, path=None):
     """Settings of ``node_name`` from ``path`` (default ``config/<node_name>.yaml``)."""
     path = Path(path) if path else default_parameter_file(node_name)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except (OSError, yaml.YAMLError) as err:
         msg = f'{path}: cannot read parameters: {err}'
         raise ConfigError(msg) from err

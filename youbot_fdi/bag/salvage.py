@@ -23,6 +23,8 @@ import struct
 
 import yaml
 
+from youbot_fdi.yamlio import load_yaml
+
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 MCAP_SCHEMA, MCAP_CHANNEL, MCAP_MESSAGE, MCAP_CHUNK, MCAP_DATA_END = 0x03, 0x04, 0x05, 0x06, 0x0F
 MCAP_RECORD_HEADER = 9  # opcode (1 byte) + record length (uint64)
@@ -103,7 +105,7 @@ def storage_files(path):
 def _metadata(path):
     """The ``rosbag2_bagfile_information`` mapping of metadata.yaml, or None."""
     try:
-        data = yaml.safe_load((Path(path) / 'metadata.yaml').read_text())
+        data = load_yaml((Path(path) / 'metadata.yaml').read_text())
     except (OSError, yaml.YAMLError):
         return None
     info = data.get('rosbag2_bagfile_information') if isinstance(data, dict) else None

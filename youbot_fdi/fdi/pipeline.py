@@ -14,10 +14,11 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.model.profile import load_model, load_profile
+from youbot_fdi.model.profile import load_model, load_profile, PlatformModel
 from youbot_fdi.samples import CommandBatch
 from youbot_fdi.settings import load_settings, settings_from_mapping
 from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.yamlio import load_yaml
 
 DEFAULT_RESIDUAL_MODEL = 'youbot'
 
@@ -27,11 +28,11 @@ def configure(settings, params_path=None):
     and the noise floors of ``settings``."""
     if not params_path:
         return load_model(settings.profile), settings
-    overrides = load_profile(params_path).fdi or {}
-    if overrides:
-        settings = settings_from_mapping(FdiSettings, {**settings.__dict__, **overrides},
+    profile = load_profile(params_path)
+    if profile.fdi:
+        settings = settings_from_mapping(FdiSettings, {**settings.__dict__, **profile.fdi},
                                          source=str(params_path))
-    return load_model(params_path), settings
+    return PlatformModel(profile), settings
 
 
 def build_pipeline(params_path=None, fdi_config=None, keep_frames=False):
@@ -63,7 +64,7 @@ def load_residual_data(path=None, wheel_names=None):
 
 def _read_residual_file(path):
     try:
-        return yaml.safe_load(path.read_text())
+        return load_yaml(path.read_text())
     except (OSError, yaml.YAMLError) as err:
         msg = f'{path}: cannot read the residual set: {err}'
         raise ConfigError(msg) from err

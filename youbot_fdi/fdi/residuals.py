@@ -257,6 +257,8 @@ class ResidualGenerator:
         self._phi1, self._gamma1 = self._discrete(self.period)[:2]
         self.kp, self.ki = firmware.velocity_kp, firmware.velocity_ki
         self.torque_per_amp = drive.torque_per_amp
+        #: one firmware period of the saturating loop: speed' = [phi | gamma k_t] [speed; current]
+        self._period_map = np.hstack([self._phi1, self._gamma1 * self.torque_per_amp])
         self.max_current = drive.max_current
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
@@ -422,12 +424,15 @@ class ResidualGenerator:
         n, period = self.n, self.period
         limit, max_current = self._integral_limit, self.max_current
         speed, integral = state[:n], state[n:]
+        drift = self._gamma1 @ friction  # constant over the interval
+        joint = np.empty(2 * n)  # [speed; current], one matrix product a period
         for _ in range(steps):
             error = target - speed
             integral = np.minimum(np.maximum(integral + error * period, -limit), limit)
-            current = np.minimum(np.maximum(self.kp * error + self.ki * integral, -max_current),
-                                 max_current)
-            speed = self._phi1 @ speed + self._gamma1 @ (current * self.torque_per_amp - friction)
+            joint[:n] = speed
+            joint[n:] = np.minimum(np.maximum(self.kp * error + self.ki * integral, -max_current),
+                                   max_current)
+            speed = self._period_map @ joint - drift
         return np.concatenate([speed, integral])
 
     def _command_step(self, state, steps, target, friction):

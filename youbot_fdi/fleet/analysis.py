@@ -53,6 +53,14 @@ def discover(root):
     return found
 
 
+def warm_up():
+    """Import what :func:`analyse` needs (run once on every worker when the cluster starts)."""
+    import youbot_fdi.bag.reader  # noqa: F401
+    import youbot_fdi.fdi.identify  # noqa: F401
+    import youbot_fdi.fdi.pipeline  # noqa: F401
+    return True
+
+
 def analyse(recording, params_path, output, fault_free_margin):
     """Replay ``recording`` (the pipeline of ``replay``, events to ``OUT/events/<name>.jsonl``)
     and identify its friction on the stretch before its first alarm; returns the row of

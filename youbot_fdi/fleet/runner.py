@@ -8,7 +8,7 @@ import sys
 import time
 
 from youbot_fdi.errors import FdiError
-from youbot_fdi.fleet.analysis import analyse, discover, load_rows
+from youbot_fdi.fleet.analysis import analyse, discover, load_rows, warm_up
 
 LOOPBACK = '127.0.0.1'
 INSTALL_HINT = 'pip install "youbot_fdi[fleet]" (or: pip install "dask[distributed]")'
@@ -35,7 +35,7 @@ class FleetResult:
 
 def dask_client(workers, scheduler=None):
     """A ``dask.distributed.Client``: to ``scheduler`` (an address) or to a new local cluster of
-    ``workers`` single-threaded processes on loopback."""
+    ``workers`` single-threaded processes on loopback; every worker has imported the pipeline."""
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError as err:
@@ -49,7 +49,9 @@ def dask_client(workers, scheduler=None):
             raise FleetError(msg) from err
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                            dashboard_address=None)
-    return Client(cluster)
+    client = Client(cluster)
+    client.run(warm_up)
+    return client
 
 
 def run_fleet(root, output, params_path, settings, client, progress=None):

@@ -47,6 +47,7 @@ from youbot_fdi.model.dynamics import DynamicParameters, WheelDynamics
 from youbot_fdi.model.firmware import FirmwareParameters, LoopKind
 from youbot_fdi.model.geometry import Platform, Wheel
 from youbot_fdi.model.kinematics import Kinematics
+from youbot_fdi.yamlio import load_yaml
 
 DEFAULT_COULOMB_VELOCITY_SCALE = 0.05  # [rad/s]
 
@@ -269,7 +270,7 @@ def load_profile(name_or_path):
     """Load and validate a profile by name or path."""
     path = profile_path(name_or_path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except yaml.YAMLError as err:
         msg = f'{path}: not valid YAML: {err}'
         raise ConfigError(msg) from err

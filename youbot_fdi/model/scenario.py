@@ -7,6 +7,7 @@ import yaml
 
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
+from youbot_fdi.yamlio import load_yaml
 
 DEFAULT_SCRIPT = 'demo.yaml'
 DEFAULT_PROFILE = 'youbot'
@@ -89,7 +90,7 @@ def load_script(path=None, duration=None):
     """
     path = Path(path) if path else config_dir() / DEFAULT_SCRIPT
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = load_yaml(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as err:
         msg = f'{path}: cannot read the drive script: {err}'
         raise ConfigError(msg) from err

@@ -31,13 +31,13 @@ platform's mass matrix M: dense for the youBot.
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from youbot_fdi.config_paths import available_profiles
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.model.profile import load_model
 from youbot_fdi.structure.model import (Equation, load_structural_model_file, model_from_mapping,
                                         shipped_structure_files, StructuralModel)
+from youbot_fdi.yamlio import load_yaml
 
 WHEEL_PREFIX = 'wheel_joint_'
 #: Entries of M or F below this fraction of the largest are structural zeros [-].
@@ -119,7 +119,7 @@ def resolve_model(name):
         return platform_structural_model(load_model(name))
     path = Path(name)
     if path.is_file():
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
         if isinstance(data, dict) and 'equations' in data:
             return model_from_mapping(data, str(path))
         return platform_structural_model(load_model(path))

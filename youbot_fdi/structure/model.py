@@ -11,6 +11,7 @@ import yaml
 
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
+from youbot_fdi.yamlio import load_yaml
 
 
 @dataclass(frozen=True)
@@ -131,7 +132,7 @@ def model_from_mapping(data, source='<model>'):
 def load_structural_model_file(path):
     """Load a structural model YAML file."""
     try:
-        data = yaml.safe_load(open(path).read())
+        data = load_yaml(open(path).read())
     except (OSError, yaml.YAMLError) as err:
         msg = f'{path}: cannot read structural model: {err}'
         raise ConfigError(msg) from err
