@@ -44,6 +44,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
         ('share/' + PACKAGE_NAME, ['package.xml', 'README.md']),
+        ('share/' + PACKAGE_NAME + '/launch', glob('launch/*.launch.py')),
         *config_data_files(),
     ],
     python_requires='>=3.10',

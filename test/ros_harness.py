@@ -47,3 +47,11 @@ class Harness:
     def close(self):
         from youbot_fdi.nodes.common import shutdown_nodes
         shutdown_nodes(self.executor, self.nodes, self.context)
+
+
+@pytest.fixture()
+def harness():
+    """A fresh :class:`Harness` per test, closed after it (import the fixture by name)."""
+    made = Harness()
+    yield made
+    made.close()

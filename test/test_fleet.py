@@ -107,3 +107,24 @@ def test_the_trend_test_flags_a_rise_and_not_noise():
     assert trends['a'].flagged and trends['a'].rate == pytest.approx(0.05 / 1.225, rel=0.2)
     assert not trends['b'].flagged
     assert friction_trends(rows[:2], FleetSettings()) == []  # too few recordings
+
+
+def test_without_dask_it_says_how_to_install_it(tmp_path):
+    """The fleet extra missing: one clear line naming the install command, exit 1."""
+    import subprocess
+    import sys
+    blocked = """
+import sys
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in ('dask', 'distributed'):
+            raise ImportError('blocked: ' + name)
+sys.meta_path.insert(0, Block())
+from youbot_fdi.cli.main import main
+sys.exit(main(['fleet', sys.argv[1], '--output', sys.argv[2]]))
+"""
+    (tmp_path / 'root').mkdir()
+    result = subprocess.run([sys.executable, '-c', blocked, str(tmp_path / 'root'), str(tmp_path / 'out')],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert 'pip install "youbot_fdi[fleet]"' in result.stderr and len(result.stderr.strip().splitlines()) == 1

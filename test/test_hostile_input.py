@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from ros_harness import Harness
+from ros_harness import harness  # noqa: F401 - the fixture
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -42,13 +42,6 @@ def bad_messages(stamp):
             message(stamp, names=['caster', 'arm_joint_1', 'x', 'y']),
             empty,
             message(stamp - 5.0)]  # stamped 5 s in the past
-
-
-@pytest.fixture()
-def harness():
-    made = Harness()
-    yield made
-    made.close()
 
 
 def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):

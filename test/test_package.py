@@ -8,7 +8,7 @@ import sys
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'README.md', 'resource', 'youbot_fdi',
+PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'README.md', 'resource', 'youbot_fdi', 'launch',
                  'config')
 CORE_MODULES = ('youbot_fdi.model.simulation', 'youbot_fdi.structure.analysis', 'youbot_fdi.fdi.residuals',
                 'youbot_fdi.fdi.decision', 'youbot_fdi.fdi.pipeline', 'youbot_fdi.fdi.identify')
@@ -106,6 +106,8 @@ def test_colcon_build_installs_executables_and_ament_marker(tmp_path):
     assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'youbot_fdi').is_file()
     assert (install / 'share' / 'youbot_fdi' / 'package.xml').is_file()
     assert (install / 'share' / 'youbot_fdi' / 'config' / 'profiles' / 'youbot.yaml').is_file()
+    assert (install / 'share' / 'youbot_fdi' / 'launch' / 'youbot_fdi.launch.py').is_file()
+    assert (install / 'share' / 'youbot_fdi' / 'config' / 'diagnostic_aggregator.yaml').is_file()
     # The installed script runs from the install tree and finds its shared config there.
     site = next(install.glob('lib/python3*/site-packages'))
     run_env = dict(os.environ, PYTHONPATH=str(site), AMENT_PREFIX_PATH=str(install))

@@ -10,11 +10,14 @@ def add_parser(subparsers):
         description='Time the simulator, the structural analysis, the driver shim with the '
                     'virtual base, replay and the live FDI path, and the node suite, each against '
                     'a baseline measured in the same run (printed as ratios, so results compare '
-                    'across machines). Takes about 30 s. With --faults: the fault benchmark '
+                    'across machines); also the CLI start time, the CAN fuzz (100,000 frames), the '
+                    'learned correction and the fleet on Dask. Takes about 4 minutes. With --faults: '
+                    'the fault benchmark '
                     '(detection, isolation, delays, false alarms per hour) on three suites side '
                     'by side: the project\'s virtual base (both control modes, with replay speed '
                     'against decode-only), an independently written simulator, and the real '
-                    'Robotino recordings in shared/.')
+                    'Robotino recordings in shared/, each replayed with the learned and the '
+                    'physics-only parameters (the ablation table).')
     parser.add_argument('--faults', action='store_true',
                         help='run the fault benchmark instead: its suites (see --suites), each '
                              'calibrated with identify as a user would (about 11 minutes on 2 '

@@ -53,6 +53,7 @@ EXCITED_TORQUE_SIGMAS = 3.0
 #: Fault types the classification window may still change after the alarm.
 REFINABLE = (FaultKind.TORQUE_LOSS.value, FaultKind.FRICTION.value, FaultKind.UNKNOWN.value)
 BASE = None  # the component of faults not tied to one wheel
+BASE_NAME = 'base'  # how the base component is named for people
 STAMP_TOLERANCE = 1e-9  # [s] rounding allowance when a time condition is turned into a row index
 ACTUATOR_CLASS = ('actuator', 'friction')
 SENSOR_CLASS = 'velocity_sensor'
@@ -509,6 +510,26 @@ class DecisionMaker:
             return []
         event = self._transition(BASE, OK, FaultKind.COMM_LOSS.value, stamp, (), 'data resumed')
         return [event] if event is not None else []
+
+    def reset(self, stamp, detail='reset after a repair'):
+        """Clear every latched fault (after a repair): the evidence, the alarms and the load
+        condition start afresh; one OK event per component that was not OK, stamped ``stamp``
+        [s]. Returns (events, what was cleared as 'wheel: fault' strings)."""
+        cleared, events = [], []
+        for key, component in self.components.items():
+            if component.level != OK:
+                cleared.append(f'{key or BASE_NAME}: {component.fault}')
+                events.append(FaultEvent(stamp, OK, key, component.fault, (), detail))
+                self.components[key] = _Component()
+        if self.load_level != OK:
+            cleared.append(f'{BASE_NAME}: {LOAD_CHANGE}')
+            events.append(FaultEvent(stamp, OK, BASE, LOAD_CHANGE, ('load_factor',), detail))
+            self.load_level = OK
+        self._evidence[:] = 0.0
+        self._below[:] = 0
+        self.alarm[:] = False
+        self._rise[:] = NEVER
+        return events, cleared
 
     def states(self):
         """Component -> (level, fault)."""

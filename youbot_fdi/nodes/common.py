@@ -22,17 +22,24 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 NAME_PREFIX = 'youbot_fdi'
 
 
-def declare_settings(node, cls):
+def declare_settings(node, cls, runtime=()):
     """Declare one ROS parameter per dataclass field (default = field default); return settings.
 
     Values come from ``--ros-args --params-file`` / ``-p`` overrides; they are validated by the
-    dataclass like the offline tools' YAML (ConfigError on a bad value).
+    dataclass like the offline tools' YAML (ConfigError naming the parameter on a bad value, at
+    start). They are read once, so each is declared read-only (``ros2 param set`` is refused
+    rather than silently ignored) except the ``runtime`` names the node handles itself.
     """
+    from rcl_interfaces.msg import ParameterDescriptor
     values = {}
     for field in dataclasses.fields(cls):
         default = field.default
+        descriptor = ParameterDescriptor(
+            read_only=field.name not in runtime,
+            description=f'{cls.__name__}.{field.name}' + ('' if field.name in runtime else
+                                                          '; read at start (see config/)'))
         value = node.declare_parameter(field.name, list(default) if isinstance(default, tuple)
-                                       else default).value
+                                       else default, descriptor).value
         values[field.name] = value
     return settings_from_mapping(cls, values, source=f'node {node.get_name()}')
 

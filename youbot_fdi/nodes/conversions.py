@@ -5,13 +5,13 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from sensor_msgs.msg import JointState
 
-from youbot_fdi.fdi.decision import FaultEvent
+from youbot_fdi.fdi.decision import BASE_NAME, FaultEvent
 from youbot_fdi.nodes.common import NAME_PREFIX, seconds_to_stamp, stamp_to_seconds
 
 LEVELS = {'OK': DiagnosticStatus.OK, 'WARN': DiagnosticStatus.WARN,
           'ERROR': DiagnosticStatus.ERROR, 'STALE': DiagnosticStatus.STALE}
 LEVEL_NAMES = {value: name for name, value in LEVELS.items()}
-BASE_COMPONENT = 'base'
+BASE_COMPONENT = BASE_NAME  # the hardware id and name of faults not tied to a wheel
 
 
 def joint_state(stamp, names, position=(), velocity=(), effort=()):

@@ -4,7 +4,8 @@ Runs :class:`~youbot_fdi.fdi.decision.DecisionMaker` on the residual frames the 
 ``/youbot_fdi/faults`` (DiagnosticArray, transient-local) carries one status per component whose
 fault state changed, with the event in its KeyValues (stamp, level, wheel, fault, residuals,
 detail). ``/diagnostics`` gets one status per wheel and one for the base, at ``diagnostics_rate``
-and on every change. No residuals for longer than ``comm_timeout`` (ROS time, so replayed
+and on every change. Service ``~/reset`` (std_srvs/Trigger) clears latched faults after a repair,
+answers what it cleared and publishes an OK event for each. No residuals for longer than ``comm_timeout`` (ROS time, so replayed
 recordings with use_sim_time work) is comm_loss of the base.
 """
 import sys
@@ -12,6 +13,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
 
 from youbot_fdi.fdi.decision import DecisionMaker, OK
 from youbot_fdi.fdi.pipeline import configure, load_residual_data
@@ -45,6 +47,7 @@ class DecisionNode(Node):
         self.faults_pub = self.create_publisher(DiagnosticArray, FAULTS, LATCHED_QOS)
         self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
         self.create_subscription(JointState, RESIDUALS, self.on_residuals, SENSOR_QOS)
+        self.create_service(Trigger, '~/reset', self.on_reset)
         self.create_timer(1.0 / rate, self.publish_diagnostics)
         self.create_timer(STALL_CHECK_PERIOD, self.check_stall)
 
@@ -57,6 +60,16 @@ class DecisionNode(Node):
             return
         self._last_stamp, self._last_arrival = stamp, now_seconds(self)
         self.emit(self.decision.data_resumed(stamp) + self.decision.update(frame))
+
+    def on_reset(self, _request, response):
+        """``~/reset`` (std_srvs/Trigger): clear latched faults after a repair; says what it
+        cleared and publishes an OK event for each."""
+        events, cleared = self.decision.reset(now_seconds(self))
+        self.emit(events)
+        response.success = True
+        response.message = ('cleared: ' + ', '.join(cleared)) if cleared else 'nothing to clear'
+        self.get_logger().info(f'reset: {response.message}')
+        return response
 
     def check_stall(self):
         if self._last_arrival is not None and \

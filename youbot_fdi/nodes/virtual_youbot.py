@@ -31,7 +31,7 @@ class VirtualYoubotNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
-        self.settings = declare_settings(self, VirtualBaseSettings)
+        self.settings = declare_settings(self, VirtualBaseSettings, RUNTIME_PARAMETERS)
         model = load_model(self.settings.profile)
         bus = open_bus(self.settings.can_interface, self.settings.can_channel)
         self.base = VirtualYoubot(model, bus, self.settings, owns_bus=True)

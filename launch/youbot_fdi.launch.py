@@ -1,0 +1,56 @@
+"""The driver shim and the FDI nodes on a robot (apt ROS 2 Jazzy):
+
+    ros2 launch youbot_fdi youbot_fdi.launch.py [composed:=true|false] [params_file:=PARAMS.yaml]
+        [can_interface:=socketcan] [can_channel:=can0] [aggregator:=true|false]
+
+``composed:=true`` (default) runs kinematics_bridge, observer and decision in one process
+(``youbot_fdi_suite``: a weak robot PC); ``false`` runs them as separate nodes. ``params_file`` is
+a ``youbot-fdi identify`` output for observer and decision. ``aggregator:=true`` starts
+diagnostic_aggregator with config/diagnostic_aggregator.yaml (rqt_robot_monitor shows one tree).
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition, UnlessCondition
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+PACKAGE = 'youbot_fdi'
+
+
+def config(name):
+    return os.path.join(get_package_share_directory(PACKAGE), 'config', name)
+
+
+def generate_launch_description():
+    composed = LaunchConfiguration('composed')
+    fdi_parameters = [config('fdi.yaml'), {'params_file': LaunchConfiguration('params_file')}]
+    separate = UnlessCondition(composed)
+    return LaunchDescription([
+        DeclareLaunchArgument('composed', default_value='true',
+                              description='FDI nodes in one process (true) or separate (false)'),
+        DeclareLaunchArgument('params_file', default_value='',
+                              description='parameter file from youbot-fdi identify'),
+        DeclareLaunchArgument('can_interface', default_value='socketcan'),
+        DeclareLaunchArgument('can_channel', default_value='can0'),
+        DeclareLaunchArgument('aggregator', default_value='false',
+                              description='start diagnostic_aggregator with our analyzers'),
+        Node(package=PACKAGE, executable='driver_shim', name='driver_shim', output='screen',
+             parameters=[config('driver_shim.yaml'),
+                         {'can_interface': LaunchConfiguration('can_interface'),
+                          'can_channel': LaunchConfiguration('can_channel')}]),
+        Node(package=PACKAGE, executable='youbot_fdi_suite', output='screen',
+             parameters=[config('kinematics_bridge.yaml')] + fdi_parameters,
+             condition=IfCondition(composed)),
+        Node(package=PACKAGE, executable='kinematics_bridge', name='kinematics_bridge',
+             output='screen', parameters=[config('kinematics_bridge.yaml')], condition=separate),
+        Node(package=PACKAGE, executable='observer', name='observer', output='screen',
+             parameters=fdi_parameters, condition=separate),
+        Node(package=PACKAGE, executable='decision', name='decision', output='screen',
+             parameters=fdi_parameters, condition=separate),
+        Node(package='diagnostic_aggregator', executable='aggregator_node', output='screen',
+             parameters=[config('diagnostic_aggregator.yaml')],
+             condition=IfCondition(LaunchConfiguration('aggregator'))),
+    ])
