@@ -42,3 +42,25 @@ def test_the_contract_catches_a_frame_that_changes_state(targets):
     can_id, payload = TmclRequest(0x11, 1, 0, 0, 5).to_can()
     report = check_frame(targets, can_id, payload, entry_points={'sloppy': sloppy})
     assert [v[3] for v in report.violations] == ['a malformed frame changed state']
+
+
+def test_the_driver_never_stamps_a_sample_before_the_last_one():
+    """The module-to-driver clock offset is re-estimated with every sample; when the estimate
+    moves back, the published stamp holds instead of going backwards (the observer would count a
+    backwards stamp and restart its residuals)."""
+    from youbot_fdi.tmcm.process_data import MotorStatus
+    made = FuzzTargets()
+    try:
+        driver, ids = made.driver, made.base.ids
+        stamps = []
+        for k, shift in enumerate([0.0, 0.0, -0.05, 0.0]):
+            if driver._clock_offset is not None:
+                driver._clock_offset += shift  # the estimate moves back 50 ms
+            for module in driver.settings.module_ids:
+                status = MotorStatus(100 * k, 10, 100, 0, 10, 2, k, 10 * (k + 1))
+                for can_id, payload in zip(ids.status_ids(module), status.encode()):
+                    driver._on_frame(can_id, payload, 0.0)
+            stamps.append(driver.sample().stamp)
+        assert all(b >= a for a, b in zip(stamps, stamps[1:])), stamps
+    finally:
+        made.close()

@@ -223,7 +223,7 @@ class BaseDriver:
             self._effort[index] = float(self.drive.milliamps_to_torque(status.current))
             self._flags[index] = status.error_flags
             self._received[index] = now
-            self._newest = now
+            self._newest = max(self._newest, now)  # a later estimate of the clock offset never steps back
 
     def _sample_stamp(self, status):
         """When the module sampled this state, on the driver's clock.
