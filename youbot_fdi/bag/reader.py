@@ -16,7 +16,7 @@ from youbot_fdi.bag.cdr import JointStateLayout
 from youbot_fdi.errors import FdiError
 from youbot_fdi.samples import (CommandBatch, CommandSample, JointBatch, JointSample,
                                 message_time, SampleChunk, SampleMapper)
-from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS  # noqa: F401 - re-exported defaults
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 __all__ = ['CommandSample', 'JointSample', 'RecordingError', 'RecordingReader']
 

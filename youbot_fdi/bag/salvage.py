@@ -132,7 +132,7 @@ class SalvageReader:
         for index, file in enumerate(self.files):
             scan = _Scan()
             try:
-                for (_, topic), stamp, _ in self._records(index, file, scan):
+                for topic, stamp, _ in self._records(index, file, scan):
                     counts[topic] = counts.get(topic, 0) + 1
                     first = stamp if first is None else min(first, stamp)
                     last = stamp if last is None else max(last, stamp)
@@ -164,7 +164,7 @@ class SalvageReader:
         wanted = {c.topic for c in (connections or self.connections)}
         for index, file in enumerate(self.files[:self._readable_files]):
             try:
-                for (_, topic), stamp, raw in self._records(index, file, _Scan()):
+                for topic, stamp, raw in self._records(index, file, _Scan()):
                     if topic in wanted:
                         yield self._by_topic[topic], stamp, raw
             except _Damaged:
@@ -175,7 +175,7 @@ class SalvageReader:
 
     # ------------------------------------------------------------------ storages
     def _records(self, index, file, scan):
-        """Yield ((file index, topic), bag time [ns], raw) of one storage file; raise _Damaged
+        """Yield (topic, bag time [ns], raw) of one storage file; raise _Damaged
         where reading stops, with ``scan.end`` the bytes read so far."""
         if file.suffix == '.mcap':
             yield from self._mcap(index, file, scan)
@@ -197,7 +197,7 @@ class SalvageReader:
                         'SELECT topic_id, timestamp, data FROM messages'):
                     topic = self._topics.get((index, storage_id))
                     if topic is not None:
-                        yield (index, topic[0]), int(stamp), bytes(data)
+                        yield topic[0], int(stamp), bytes(data)
             except sqlite3.Error as err:
                 raise _Damaged(str(err)) from err
         finally:
@@ -260,7 +260,7 @@ class SalvageReader:
         return records, start_of_data + offset
 
     def _mcap_record(self, index, opcode, body):
-        """A message ((file index, topic), log time [ns], raw) or None; learns schemas and channels."""
+        """A message (topic, log time [ns], raw) or None; learns schemas and channels."""
         if opcode == MCAP_SCHEMA:
             schema_id = struct.unpack_from('<H', body)[0]
             name, _ = _string(body, 2)
@@ -274,7 +274,7 @@ class SalvageReader:
             channel_id, _, log_time, _ = struct.unpack_from('<HIQQ', body)
             topic = self._topics.get((index, channel_id))
             if topic is not None:
-                return (index, topic[0]), log_time, body[MCAP_MESSAGE_HEADER:]
+                return topic[0], log_time, body[MCAP_MESSAGE_HEADER:]
         return None
 
 

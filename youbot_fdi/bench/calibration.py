@@ -26,7 +26,6 @@ def calibrate(recording, prior, out_stem, settings=None):
 
 
 def residual_spread(result):
-    """{variant: {family: RMS}} of a calibration (None when nothing was learned)."""
-    learning = result.info.get('learning')
-    spread = learning.get('residual_rms') if isinstance(learning, dict) else None
-    return None if spread is None else {'learned': spread['learned'], 'physics': spread['physics']}
+    """{variant: {family: RMS}} of a calibration's residuals (the same twice when nothing was
+    learned), as ``identify`` recorded it."""
+    return result.info['learning']['residual_rms']

@@ -22,7 +22,7 @@ def bench_fleet(progress=print, recordings=FLEET_RECORDINGS, seconds=FLEET_DRIVE
                             'serial loop', float('nan'))]
     from youbot_fdi.bench.simulated import random_script
     from youbot_fdi.fleet.analysis import analyse, discover, warm_up
-    from youbot_fdi.fleet.runner import dask_client, run_fleet
+    from youbot_fdi.fleet.runner import close_client, dask_client, run_fleet
     from youbot_fdi.fleet.settings import FleetSettings
     from youbot_fdi.model import load_model
     from youbot_fdi.tmcm.recordings import record_drive
@@ -48,9 +48,7 @@ def bench_fleet(progress=print, recordings=FLEET_RECORDINGS, seconds=FLEET_DRIVE
             try:
                 result = run_fleet(root, Path(tmp) / f'fleet{workers}', None, settings, client)
             finally:
-                cluster = client.cluster
-                client.close()
-                cluster.close()
+                close_client(client)
             note = (f'{len(found)} recordings of {seconds:g} s; cluster start-up {startup:.1f} s apart'
                     + (f'; target >= {SPEEDUP_TARGET:g}x' if workers == 2 else ''))
             results.append(BenchResult(f'fleet: {workers} worker(s), throughput',

@@ -40,7 +40,7 @@ def add_parser(subparsers):
 def run(args):
     import sys
 
-    from youbot_fdi.fleet.runner import dask_client, progress_bar, run_fleet
+    from youbot_fdi.fleet.runner import close_client, dask_client, progress_bar, run_fleet
     from youbot_fdi.fleet.settings import FleetSettings
     from youbot_fdi.settings import load_settings
     if args.workers < 1:
@@ -57,10 +57,7 @@ def run(args):
         result = run_fleet(args.root, output, params, settings, client,
                            progress_bar if sys.stderr.isatty() else None)
     finally:
-        cluster = client.cluster
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        close_client(client)
     errors = [r for r in result.rows if r['status'] == 'error']
     print(f'{len(result.rows)} recordings: {result.analysed} analysed in {result.seconds:.1f} s, '
           f'{result.skipped} done before (resumed), {len(errors)} unreadable')

@@ -7,9 +7,9 @@
    drains away). Torque and command-path evidence on half the wheels or more at once (half the
    threshold each, rising within ``shared_window`` of each other) is a change they share, not a
    wheel fault; so is a modest excess (score below ``second_fault_score``) while other wheels'
-   evidence is up. A clear excess on a wheel that rose later is a second fault. A position reading that repeats
-   exactly while the wheel is commanded and measured to turn is direct evidence of a frozen
-   sensor (``frozen_samples`` in a row), at any rate.
+   evidence is up. A clear excess on a wheel that rose later is a second fault. A position
+   reading that repeats exactly while the wheel is commanded and measured to turn is direct
+   evidence of a frozen sensor (``frozen_samples`` in a row), at any rate.
 2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
    analysis (``config/residuals/<model>.yaml``): a fault is a candidate when every alarming torque
    residual is in its signature, and the candidates whose torque signature has the fewest silent

@@ -271,8 +271,9 @@ def quantile_fit(features, target, quantile, rows=QUANTILE_ROWS, seed=0):
     return np.maximum(result.x[:k], 0.0) / scale  # the solver's tolerance may leave -1e-17
 
 
-def fit_bounds(model, arrays, settings):
-    """The bounds' floors and weights learned from this (nominal) recording, and their coverage.
+def fit_bounds(batch, settings):
+    """The bounds' floors and weights learned from the residuals (a ResidualBatch, the generator
+    run over a nominal recording with the identified model), and their coverage.
 
     Per bound (:data:`~youbot_fdi.fdi.residuals.BOUND_TERMS`), the ``bound_quantile`` of |r| as a
     non-negative linear function of its operating-point features, times ``bound_margin``; a
@@ -280,7 +281,6 @@ def fit_bounds(model, arrays, settings):
     velocity-mode rows, the effort bound from current-mode rows (after their command-step
     allowance). Returns ({setting: value}, {family: share of nominal rows inside the bound}).
     """
-    batch = run_generator(model, arrays, settings)
     velocity_rows = batch.velocity_mode & ~np.all((batch.values['command'] == 0.0)
                                                   & (batch.bounds['command'] == 1.0), axis=1)
     residual = {family: np.abs(batch.values[family]) for family in ('torque', 'observer', 'encoder')}
@@ -306,26 +306,27 @@ def fit_bounds(model, arrays, settings):
     return learned, coverage
 
 
-def learn_corrections(model, arrays, settings):
+def _rms(batch):
+    """{family: RMS of its residuals over the rows and wheels} of a ResidualBatch."""
+    return {family: float(np.sqrt(np.nanmean(values ** 2))) for family, values in batch.values.items()}
+
+
+def learn_corrections(model, arrays, settings, physics):
     """The learned torque correction (:mod:`youbot_fdi.fdi.learned`) of ``model`` on this nominal
-    recording. Returns (the ``learned`` profile section or None, notes to print, residual spread:
-    {'physics' | 'learned': {family: RMS over the recording and the wheels}}, the same twice when
-    nothing is learned)."""
-    physics = run_generator(model, arrays, settings)
+    recording, from its physics residuals ``physics`` (the generator's ResidualBatch). Returns
+    (the ``learned`` profile section or None, notes to print, residual spread: {'physics' |
+    'learned': {family: RMS over the recording and the wheels}}, the same twice when nothing is
+    learned)."""
     index = np.searchsorted(arrays.time, physics.stamp)
     mean_speed = 0.5 * (arrays.velocity[index] + arrays.velocity[np.maximum(index - 1, 0)])
     correction, notes = fit_torque_correction(mean_speed, physics.values['torque'],
                                               model.dynamics.parameters.coulomb_velocity_scale,
                                               settings.torque_sigma)
     if correction is None:  # the learned variant is the physics one
-        spread = {family: float(np.sqrt(np.nanmean(values ** 2))) for family, values in physics.values.items()}
-        return None, notes, {'physics': spread, 'learned': dict(spread)}
+        return None, notes, {'physics': _rms(physics), 'learned': _rms(physics)}
     learned = {'torque': correction.to_mapping()}
     corrected = run_generator(PlatformModel(replace(model.profile, learned=learned)), arrays, settings)
-    spread = {name: {family: float(np.sqrt(np.nanmean(batch.values[family] ** 2)))
-                     for family in batch.values}
-              for name, batch in (('physics', physics), ('learned', corrected))}
-    return learned, notes, spread
+    return learned, notes, {'physics': _rms(physics), 'learned': _rms(corrected)}
 
 
 @dataclass(frozen=True)
@@ -371,8 +372,10 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
     settings = replace(settings, sample_interval=interval)
     if delay is not None:
         settings = replace(settings, input_delay=delay)
-    fdi, coverage = fit_bounds(model, arrays, settings)
-    learned, notes, spread = learn_corrections(model, arrays, settings) if learn else (None, [], None)
+    physics = run_generator(model, arrays, settings)  # the residuals both fits below start from
+    fdi, coverage = fit_bounds(physics, settings)
+    learned, notes, spread = (learn_corrections(model, arrays, settings, physics) if learn
+                              else (None, [], None))
     if learned is not None:
         model = PlatformModel(replace(model.profile, learned=learned))
     info['learning'] = {'notes': notes, 'residual_rms': spread} if learn else 'physics only'

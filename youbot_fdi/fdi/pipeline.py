@@ -18,6 +18,7 @@ from youbot_fdi.model.profile import load_model, load_profile, PlatformModel
 from youbot_fdi.samples import CommandBatch
 from youbot_fdi.settings import load_settings, settings_from_mapping
 from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 from youbot_fdi.yamlio import load_yaml
 
 DEFAULT_RESIDUAL_MODEL = 'youbot'
@@ -161,7 +162,7 @@ class FdiPipeline:
         come); ``on_progress(messages done, total)`` after every chunk. A damaged recording is
         analysed as far as it can be read (the result's ``damage`` says where it ended).
         """
-        from youbot_fdi.bag.reader import JOINT_STATES, RecordingReader, WHEEL_COMMANDS
+        from youbot_fdi.bag.reader import RecordingReader
         events = []
         with RecordingReader(path, self.model.wheel_names, joint_topic or JOINT_STATES,
                              command_topic or WHEEL_COMMANDS) as reader:

@@ -104,8 +104,8 @@ def analyse(recording, params_path, output, fault_free_margin):
 def _identify_friction(path, model, until):
     """Start, duration and the identified viscous friction per wheel [N·m·s/rad] and mass [kg]
     from the samples before ``until`` [s] (NaN when too few or no effort recorded)."""
-    from youbot_fdi.fdi.identify import fit_dynamics, IdentificationError, MIN_SAMPLES, read_arrays
-    from youbot_fdi.fdi.identify import RecordingArrays
+    from youbot_fdi.fdi.identify import (fit_dynamics, IdentificationError, MIN_SAMPLES, read_arrays,
+                                         RecordingArrays)
     arrays = read_arrays(path, model)
     found = {'start': float(arrays.time[0]), 'duration_s': float(arrays.time[-1] - arrays.time[0]),
              'friction': [math.nan] * model.dynamics.n_wheels}

@@ -54,6 +54,14 @@ def dask_client(workers, scheduler=None):
     return client
 
 
+def close_client(client):
+    """Close ``client`` and the local cluster it started, if it started one."""
+    cluster = client.cluster
+    client.close()
+    if cluster is not None:
+        cluster.close()
+
+
 def run_fleet(root, output, params_path, settings, client, progress=None):
     """Analyse every recording below ``root`` not yet in ``output``; write the CSV and the HTML
     report of all of them. ``progress(done, total)`` after each recording."""

@@ -78,16 +78,15 @@ class ObserverNode(Node):
         """A WARN on /diagnostics naming the input problems counted since the last one (at most
         one every ``input_warn_interval`` s); the messages themselves were skipped or restarted
         the residuals, never raised a fault."""
-        problems = self.input_report.check({**self.mapper.counters, **self.generator.counters},
-                                           now_seconds(self))
+        counters, now = {**self.mapper.counters, **self.generator.counters}, now_seconds(self)
+        problems = self.input_report.check(counters, now)
         if not problems:
             return
         status = DiagnosticStatus(level=DiagnosticStatus.WARN, name=f'{NAME_PREFIX}/{NODE_NAME}: input',
                                   hardware_id=NODE_NAME, message='; '.join(problems))
-        counters = {**self.mapper.counters, **self.generator.counters}
         status.values = [KeyValue(key=k, value=str(v)) for k, v in counters.items()]
         array = DiagnosticArray(status=[status])
-        array.header.stamp = seconds_to_stamp(now_seconds(self))
+        array.header.stamp = seconds_to_stamp(now)
         self.diag_pub.publish(array)
         self.get_logger().warning(status.message)
 
