@@ -64,8 +64,10 @@ setup(
             'youbot_sim = youbot_fdi.nodes.composed:sim_main',
             'kinematics_bridge = youbot_fdi.nodes.kinematics_bridge:main',
             'observer = youbot_fdi.nodes.observer:main',
+            'residual_generator = youbot_fdi.nodes.residual_generator:main',
             'decision = youbot_fdi.nodes.decision:main',
             'youbot_fdi_suite = youbot_fdi.nodes.composed:fdi_main',
+            'youbot_fdi_fused = youbot_fdi.nodes.composed:fused_main',
         ],
     },
 )

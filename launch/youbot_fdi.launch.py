@@ -1,11 +1,14 @@
 """The driver shim and the FDI nodes on a robot (apt ROS 2 Jazzy):
 
-    ros2 launch youbot_fdi youbot_fdi.launch.py [composed:=true|false] [params_file:=PARAMS.yaml]
-        [can_interface:=socketcan] [can_channel:=can0] [aggregator:=true|false]
+    ros2 launch youbot_fdi youbot_fdi.launch.py [composed:=true|false] [fused:=false|true]
+        [params_file:=PARAMS.yaml] [can_interface:=socketcan] [can_channel:=can0]
+        [aggregator:=true|false]
 
-``composed:=true`` (default) runs kinematics_bridge, observer and decision in one process
-(``youbot_fdi_suite``: a weak robot PC); ``false`` runs them as separate nodes. ``params_file`` is
-a ``youbot-fdi identify`` output for observer and decision. ``aggregator:=true`` starts
+``composed:=true`` (default) runs kinematics_bridge, observer, residual_generator and decision in
+one process (``youbot_fdi_suite``: a weak robot PC); ``false`` runs them as separate processes.
+``fused:=true`` (with ``composed:=true``) runs ``youbot_fdi_fused`` instead: the observer computes
+the residuals itself (the weakest PCs). ``params_file`` is a ``youbot-fdi identify`` output for
+the observer, residual generator and decision. ``aggregator:=true`` starts
 diagnostic_aggregator with config/diagnostic_aggregator.yaml (rqt_robot_monitor shows one tree).
 """
 import os
@@ -14,7 +17,7 @@ from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition, UnlessCondition
-from launch.substitutions import LaunchConfiguration
+from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
 
 PACKAGE = 'youbot_fdi'
@@ -25,12 +28,18 @@ def config(name):
 
 
 def generate_launch_description():
-    composed = LaunchConfiguration('composed')
+    composed, fused = LaunchConfiguration('composed'), LaunchConfiguration('fused')
     fdi_parameters = [config('fdi.yaml'), {'params_file': LaunchConfiguration('params_file')}]
     separate = UnlessCondition(composed)
+
+    def one_process(want_fused):
+        return IfCondition(PythonExpression(["'", composed, "' == 'true' and ('", fused,
+                                             "' == 'true') == ", str(want_fused)]))
     return LaunchDescription([
         DeclareLaunchArgument('composed', default_value='true',
                               description='FDI nodes in one process (true) or separate (false)'),
+        DeclareLaunchArgument('fused', default_value='false',
+                              description='with composed: the observer computes the residuals'),
         DeclareLaunchArgument('params_file', default_value='',
                               description='parameter file from youbot-fdi identify'),
         DeclareLaunchArgument('can_interface', default_value='socketcan'),
@@ -43,11 +52,16 @@ def generate_launch_description():
                           'can_channel': LaunchConfiguration('can_channel')}]),
         Node(package=PACKAGE, executable='youbot_fdi_suite', output='screen',
              parameters=[config('kinematics_bridge.yaml')] + fdi_parameters,
-             condition=IfCondition(composed)),
+             condition=one_process(False)),
+        Node(package=PACKAGE, executable='youbot_fdi_fused', output='screen',
+             parameters=[config('kinematics_bridge.yaml')] + fdi_parameters,
+             condition=one_process(True)),
         Node(package=PACKAGE, executable='kinematics_bridge', name='kinematics_bridge',
              output='screen', parameters=[config('kinematics_bridge.yaml')], condition=separate),
         Node(package=PACKAGE, executable='observer', name='observer', output='screen',
              parameters=fdi_parameters, condition=separate),
+        Node(package=PACKAGE, executable='residual_generator', name='residual_generator',
+             output='screen', parameters=fdi_parameters, condition=separate),
         Node(package=PACKAGE, executable='decision', name='decision', output='screen',
              parameters=fdi_parameters, condition=separate),
         Node(package='diagnostic_aggregator', executable='aggregator_node', output='screen',

@@ -183,8 +183,8 @@ def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_d
     _, pipeline = build_pipeline()
     pipeline = FdiPipeline(model, replace(pipeline.settings, input_delay=input_delay), keep_frames=True)
     stepped = []
-    original = pipeline.generator._stepped
-    pipeline.generator._stepped = lambda *args: stepped.append(1) or original(*args)
+    original = pipeline.generator.observer._stepped
+    pipeline.generator.observer._stepped = lambda *args: stepped.append(1) or original(*args)
     with RecordingReader(recordings[name], model.wheel_names) as reader:
         events = [e for chunk in reader.chunks(size=SMALL_CHUNK) for e in pipeline.feed(chunk)]
     frames, expected = sample_by_sample(recordings[name], model, pipeline.settings)

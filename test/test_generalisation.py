@@ -7,6 +7,7 @@ import pytest
 
 from youbot_fdi.bench.independent_sim import simulate
 from youbot_fdi.fdi.decision import DecisionMaker
+from youbot_fdi.fdi.observer import signed_torque
 from youbot_fdi.fdi.pipeline import build_pipeline, FdiPipeline, load_residual_data
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualFrame, ResidualGenerator
 from youbot_fdi.samples import message_time
@@ -54,7 +55,7 @@ def test_a_command_is_in_force_by_its_stamp_not_by_when_it_arrived(model):
     commands = CommandBatch(np.array([1.0, 2.0]), np.array([True, True]),
                             np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0]]))
     stamps = np.array([1.0, 1.1, 2.0, 2.01])
-    _, target = generator._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
+    _, target = generator.observer._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
     signs = model.kinematics.drive_signs
     np.testing.assert_allclose(target, signs * np.array([[1.0] * 4, [1.0] * 4, [2.0] * 4, [2.0] * 4]))
 
@@ -207,9 +208,9 @@ def test_the_load_factor_is_the_part_every_wheel_shares(model):
     generator = ResidualGenerator(model, FdiSettings(torque_sigma=0.01))
     friction = np.array([0.2, 0.2, 0.2, 0.2])
     both = np.concatenate([[1.5, 1.3, 1.4, 1.6] * friction, friction])
-    assert float(generator._load_factor(both, 1.0)[0]) == pytest.approx(1.3)
+    assert float(generator.observer._load_factor(both, 1.0)[0]) == pytest.approx(1.3)
     one = np.concatenate([[2.0, 1.0, 1.0, 1.0] * friction, friction])
-    assert float(generator._load_factor(one, 1.0)[0]) == pytest.approx(1.0)  # one wheel: a fault
+    assert float(generator.observer._load_factor(one, 1.0)[0]) == pytest.approx(1.0)  # one wheel: a fault
 
 
 # ---------------------------------------------------------------------- the real recordings
@@ -247,5 +248,6 @@ def test_unsigned_effort_is_signed_by_the_explained_torque(model):
     from youbot_fdi.model.profile import PlatformModel
     unsigned = PlatformModel(replace(model.profile, drive=replace(model.drive, signed_effort=False)))
     generator = ResidualGenerator(unsigned, FdiSettings())
-    assert generator._signed(np.array([0.5, 0.5]), np.array([-0.2, 0.3])).tolist() == [-0.5, 0.5]
-    assert FdiPipeline(unsigned).generator.signed_effort is False
+    signs = signed_torque(np.array([0.5, 0.5]), np.array([-0.2, 0.3]), generator.observer.signed_effort)
+    assert signs.tolist() == [-0.5, 0.5]
+    assert FdiPipeline(unsigned).generator.observer.signed_effort is False

@@ -17,6 +17,7 @@ from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, seconds_to_stamp  
 from youbot_fdi.nodes.conversions import event_from_status  # noqa: E402
 from youbot_fdi.nodes.decision import DecisionNode  # noqa: E402
 from youbot_fdi.nodes.observer import ObserverNode  # noqa: E402
+from youbot_fdi.nodes.residual_generator import ResidualGeneratorNode  # noqa: E402
 
 NAMES = load_model('youbot').wheel_names
 RATE = 100.0  # [Hz]
@@ -46,6 +47,7 @@ def bad_messages(stamp):
 
 def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
     harness.add(ObserverNode(context=harness.context))
+    harness.add(ResidualGeneratorNode(context=harness.context))
     decision = harness.add(DecisionNode(context=harness.context))
     faults, warnings, residuals = [], [], []
     probe = harness.probe
@@ -54,7 +56,7 @@ def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
     probe.create_subscription(
         DiagnosticArray, '/diagnostics',
         lambda m: warnings.extend(s for s in m.status if s.level == DiagnosticStatus.WARN
-                                  and s.name.endswith('observer: input')), 10)
+                                  and s.name.endswith(': input')), 10)
     probe.create_subscription(JointState, '/youbot_fdi/residuals', residuals.append, 10)
     joints = probe.create_publisher(JointState, '/joint_states', 10)
     commands = probe.create_publisher(JointState, '/wheel_commands', 10)
@@ -75,10 +77,12 @@ def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
     harness.spin_for(6.0, every=1.0 / RATE, action=publish)
     assert residuals, 'the observer stopped'
     late = len(residuals)
-    text = ' '.join(w.message for w in warnings)
-    for problem in ('NaN', 'shorter', 'joint missing', 'no values', 'backwards'):
-        assert problem in text, f'{problem!r} not named on /diagnostics: {text}'
-    assert len(warnings) <= 8  # rate-limited: at most one a second (6 s)
+    for node in ('observer', 'residual_generator'):
+        text = ' '.join(w.message for w in warnings if w.name.endswith(f'/{node}: input'))
+        problems = ('NaN', 'shorter', 'joint missing', 'no values')
+        for problem in problems + (('backwards',) if node == 'observer' else ()):
+            assert problem in text, f'{node}: {problem!r} not named on /diagnostics: {text}'
+        assert sum(w.name.endswith(f'/{node}: input') for w in warnings) <= 8  # one a second (6 s)
     assert [e for e in faults if e.level == 'ERROR'] == []
 
     # /joint_states falls silent: comm_loss of the base within comm_timeout.

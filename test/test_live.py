@@ -35,6 +35,18 @@ def test_injected_fault_is_detected_and_isolated_live(tmp_path):
     assert offline[0].stamp == pytest.approx(found[0].stamp, abs=0.011)  # within one sample
 
 
+@pytest.mark.parametrize('layout', ['composed', 'fused'])
+def test_one_process_layouts_detect_the_demo_fault(layout):
+    """The separate layout (processes) is the default above; the one-process layouts find the
+    same fault on the same wheel."""
+    plan = DemoPlan(SCRIPT.scaled_to(5.0), 'runaway', 'wheel_joint_fl', 2.5, console=False,
+                    layout=layout)
+    events, injected_at, _ = run_demo(plan)
+    found = alarms(events)
+    assert found and (found[0].wheel, found[0].fault) == ('wheel_joint_fl', 'runaway')
+    assert 0.0 <= found[0].stamp - injected_at <= LIVE_DELAY
+
+
 def test_demo_command_writes_contract_events(tmp_path, capsys):
     events = tmp_path / 'events.jsonl'
     assert main(['demo', '--fault', 'torque_loss', '--wheel', 'wheel_joint_fr', '--at', '2',
@@ -59,6 +71,7 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
     from youbot_fdi.nodes.conversions import event_from_status
     from youbot_fdi.nodes.decision import DecisionNode
     from youbot_fdi.nodes.observer import ObserverNode
+    from youbot_fdi.nodes.residual_generator import ResidualGeneratorNode
     from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
 
     record_drive(tmp_path / 'rec', load_model('youbot'), SCRIPT.scaled_to(6.0), fault='stuck',
@@ -67,6 +80,7 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
     try:
         sim_time = [Parameter('use_sim_time', value=True)]
         harness.add(ObserverNode(context=harness.context, parameter_overrides=sim_time))
+        harness.add(ResidualGeneratorNode(context=harness.context, parameter_overrides=sim_time))
         decision = harness.add(DecisionNode(context=harness.context, parameter_overrides=sim_time))
         events = []
         harness.probe.create_subscription(

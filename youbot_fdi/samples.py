@@ -105,7 +105,7 @@ COUNTERS = ('joint_states', 'wheel_commands', 'skipped_nan', 'skipped_short',
 
 
 #: What each counted input problem means, for people (the mapper's skips and the residual
-#: generator's restarts, :data:`youbot_fdi.fdi.residuals.STAMP_COUNTERS`).
+#: generator's restarts, :data:`youbot_fdi.fdi.observer.STAMP_COUNTERS`).
 INPUT_PROBLEMS = {
     'skipped_nan': 'NaN or infinite values',
     'skipped_short': 'arrays shorter than the joint names',
@@ -114,6 +114,9 @@ INPUT_PROBLEMS = {
     'stamps_backwards': 'header stamp going backwards',
     'stamps_repeated': 'header stamp repeated (duplicated sample)',
     'gaps': 'gap in the samples',
+    'unpaired': 'a prediction not starting at the last sample (one lost between nodes)',
+    'dropped_unpaired': 'a sample or prediction whose counterpart never came',
+    'skipped_unstamped': 'no header stamp: cannot be paired with its prediction (run the observer fused)',
 }
 
 

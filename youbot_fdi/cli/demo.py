@@ -12,7 +12,8 @@ def add_parser(subparsers):
     parser = subparsers.add_parser(
         NAME, help='the live demo: virtual youBot, driver shim and FDI nodes over ROS 2 topics',
         description='Run a virtual youBot on a virtual CAN bus, the driver shim and every FDI node '
-                    'as separate ROS 2 nodes, drive the scripted path (config/demo.yaml), inject a '
+                    '(kinematics_bridge, observer, residual_generator, decision) as separate '
+                    'ROS 2 processes, drive the scripted path (config/demo.yaml), inject a '
                     'fault (default: torque_loss on wheel_joint_fr at 5 s; --fault none for a '
                     'fault-free drive) and show it as it is detected. Ends by itself.')
     parser.add_argument('--fault', default=DEFAULT_FAULT,
@@ -24,6 +25,13 @@ def add_parser(subparsers):
     parser.add_argument('--script', help='drive script YAML (default: config/demo.yaml)')
     parser.add_argument('--record', metavar='DIR',
                         help='also record /joint_states and /wheel_commands as a rosbag2 recording')
+    layout = parser.add_mutually_exclusive_group()
+    layout.add_argument('--composed', dest='layout', action='store_const', const='composed',
+                        help='the FDI nodes in this process and executor (youbot_fdi_suite)')
+    layout.add_argument('--fused', dest='layout', action='store_const', const='fused',
+                        help='as --composed, the observer computing the residuals itself '
+                             '(youbot_fdi_fused)')
+    parser.set_defaults(layout='separate')
     parser.add_argument('--quiet', action='store_true', help='only the summary')
     parser.set_defaults(run=run)
 
@@ -33,8 +41,9 @@ def run(args):
     from youbot_fdi.nodes.demo import DemoPlan, run_demo
     _, script = load_script(args.script, args.duration)
     fault = None if args.fault == NONE else args.fault
-    plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record)
-    print(f'youbot-fdi demo: {script.duration:.1f} s drive, '
+    plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record,
+                    layout=args.layout)
+    print(f'youbot-fdi demo ({args.layout} FDI nodes): {script.duration:.1f} s drive, '
           + (f'{fault} on {args.wheel} at {args.at:g} s' if fault else 'no fault injected'), flush=True)
     events, injected_at, start = run_demo(plan, args.events)
     alarms = [e for e in events if e.level == 'ERROR']

@@ -45,7 +45,7 @@ def run(args):
     from youbot_fdi.bag.reader import RecordingError
     from youbot_fdi.fdi.eventlog import EventLog
     from youbot_fdi.fdi.pipeline import build_pipeline
-    from youbot_fdi.fdi.residuals import STAMP_COUNTERS
+    from youbot_fdi.fdi.observer import STAMP_COUNTERS
     model, pipeline = build_pipeline(args.params, args.fdi_config, keep_frames=bool(args.report))
     events_path = Path(args.events)
     found = []

@@ -9,6 +9,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, qos_profile_s
 
 from youbot_fdi.errors import ConfigError, FdiError
 from youbot_fdi.settings import settings_from_mapping
+from youbot_fdi.topics import DIAGNOSTICS
 
 #: Subscriptions to sensor streams accept reliable and best-effort publishers alike.
 SENSOR_QOS = qos_profile_sensor_data
@@ -20,6 +21,7 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          history=HistoryPolicy.KEEP_LAST)
 NAME_PREFIX = 'youbot_fdi'
+INPUT_WARN_INTERVAL = 1.0  # [s] between input-problem WARNs on /diagnostics (rate limit)
 
 
 def declare_settings(node, cls, runtime=()):
@@ -80,6 +82,35 @@ def health_to_diagnostics(node, records, component, hardware_ids=None, default_h
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in record.values.items()]
         array.status.append(status)
     return array
+
+
+class InputWarnings:
+    """A node's WARN on /diagnostics naming the input problems counted since the last one (at
+    most one every ``interval`` s; :class:`~youbot_fdi.samples.InputReport`): the messages
+    themselves were skipped or restarted the residuals, never raised a fault."""
+
+    def __init__(self, node, interval):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from youbot_fdi.samples import InputReport
+        self.node = node
+        self.report = InputReport(interval)
+        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
+
+    def check(self, counters):
+        """Publish (and log) a WARN if ``counters`` (name -> running count) has new problems."""
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        now = now_seconds(self.node)
+        problems = self.report.check(counters, now)
+        if not problems:
+            return
+        name = self.node.get_name()
+        status = DiagnosticStatus(level=DiagnosticStatus.WARN, name=f'{NAME_PREFIX}/{name}: input',
+                                  hardware_id=name, message='; '.join(problems))
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in counters.items()]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = seconds_to_stamp(now)
+        self.publisher.publish(array)
+        self.node.get_logger().warning(status.message)
 
 
 def shutdown_nodes(executor, nodes, context=None):

@@ -2,8 +2,11 @@
 
 ``ros2 run youbot_fdi youbot_sim`` runs the virtual youBot and the driver shim together, which is
 also the only way python-can's ``virtual`` bus connects them (it does not cross processes).
-``ros2 run youbot_fdi youbot_fdi_suite`` runs the FDI nodes together beside a real driver.
+``ros2 run youbot_fdi youbot_fdi_suite`` runs the FDI nodes (kinematics bridge, observer,
+residual generator, decision) together beside a real driver; ``youbot_fdi_fused`` runs the observer
+fused with the residual generator (one node fewer, one message fewer per sample: the weakest PCs).
 """
+from functools import partial
 import sys
 
 from youbot_fdi.nodes.common import spin_nodes
@@ -11,9 +14,15 @@ from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.kinematics_bridge import KinematicsBridgeNode
 from youbot_fdi.nodes.observer import ObserverNode
+from youbot_fdi.nodes.residual_generator import ResidualGeneratorNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
 
-FDI_NODES = (KinematicsBridgeNode, ObserverNode, DecisionNode)
+#: The FDI nodes of each layout, in data-flow order: node factories (``context=`` etc. as kwargs).
+LAYOUTS = {
+    'separate': (KinematicsBridgeNode, ObserverNode, ResidualGeneratorNode, DecisionNode),
+    'fused': (KinematicsBridgeNode, partial(ObserverNode, fused=True), DecisionNode),
+}
+FDI_NODES = LAYOUTS['separate']
 
 
 def sim_main(args=None):
@@ -22,8 +31,13 @@ def sim_main(args=None):
 
 
 def fdi_main(args=None):
-    """The FDI suite (kinematics bridge, observer, decision) in one process, beside a driver."""
-    return spin_nodes(list(FDI_NODES), args=args)
+    """The FDI nodes (kinematics bridge, observer, residual generator, decision) in one process."""
+    return spin_nodes(list(LAYOUTS['separate']), args=args)
+
+
+def fused_main(args=None):
+    """The FDI nodes with the observer fused with the residual generator, in one process."""
+    return spin_nodes(list(LAYOUTS['fused']), args=args)
 
 
 if __name__ == '__main__':

@@ -1,13 +1,21 @@
-"""The live demo: virtual youBot, driver shim and every FDI node as separate nodes over ROS 2 topics.
+"""The live demo: virtual youBot, driver shim and every FDI node over ROS 2 topics.
 
-All nodes share one process and one executor (python-can's virtual bus connects the base and the
-shim only within a process), but talk only through topics: /cmd_vel -> kinematics_bridge ->
-/wheel_commands -> driver_shim -> CAN -> virtual_youbot -> CAN -> /joint_states -> observer ->
-/youbot_fdi/residuals -> decision -> /youbot_fdi/faults, /diagnostics. A scripted driver publishes
-/cmd_vel, injects the fault into the virtual base at its time, and shows what happens.
+/cmd_vel -> kinematics_bridge -> /wheel_commands -> driver_shim -> CAN -> virtual_youbot -> CAN ->
+/joint_states -> observer -> /youbot_fdi/predicted -> residual_generator -> /youbot_fdi/residuals
+-> decision -> /youbot_fdi/faults, /diagnostics. The virtual base and the shim share this process
+(python-can's virtual bus connects them only within a process) with a scripted driver that
+publishes /cmd_vel, injects the fault into the virtual base at its time, and shows what happens.
+The FDI nodes run in the chosen layout (:data:`LAYOUT_CHOICES`): ``separate`` (default) starts
+each as its own process, as ``ros2 run`` would; ``composed`` runs them in this process and
+executor; ``fused`` the same with the observer computing the residuals itself.
 """
 from dataclasses import dataclass
 import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import tempfile
 import time
 import uuid
 
@@ -22,7 +30,7 @@ import rclpy
 
 from youbot_fdi.fdi.eventlog import EventLog
 from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes
-from youbot_fdi.nodes.composed import FDI_NODES
+from youbot_fdi.nodes.composed import LAYOUTS
 from youbot_fdi.nodes.conversions import event_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
@@ -32,6 +40,9 @@ from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, WHEEL_COMMANDS
 COMMAND_RATE = 20.0  # /cmd_vel [Hz]
 STATUS_PERIOD = 1.0  # console line [s]
 SETTLE_AFTER = 1.0  # keep running after the script ends [s]
+LAYOUT_CHOICES = ('separate', 'composed', 'fused')
+PROCESS_START_TIMEOUT = 60.0  # [s] for the FDI node processes to appear on the graph
+PROCESS_STOP_TIMEOUT = 10.0  # [s] after SIGINT before they are killed
 
 
 @dataclass(frozen=True)
@@ -44,14 +55,16 @@ class DemoPlan:
     fault_at: float  # [s] into the drive
     console: bool = True
     record: object = None  # a new rosbag2 directory for /joint_states and /wheel_commands
+    layout: str = 'separate'  # one of LAYOUT_CHOICES
 
 
 class DemoDriverNode(Node):
     """Publishes the scripted /cmd_vel, injects the fault, and shows wheel states and faults."""
 
-    def __init__(self, plan, base, log=None, **kwargs):
+    def __init__(self, plan, base, log=None, waits_for=(), **kwargs):
         super().__init__('demo_driver', **kwargs)
         self.plan, self.base, self.log = plan, base, log
+        self.waits_for = set(waits_for)  # node names that must be on the graph before driving
         self.cmd_pub = self.create_publisher(Twist, CMD_VEL, 10)
         self.create_subscription(DiagnosticArray, FAULTS, self.on_faults, LATCHED_QOS)
         self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
@@ -77,6 +90,8 @@ class DemoDriverNode(Node):
 
     def on_timer(self):
         if self.start is None:
+            if not self.waits_for <= set(self.get_node_names()):
+                return
             self.start = now_seconds(self)
         t = self.elapsed()
         vx, vy, wz = (float(v) for v in self.plan.script.twists([t])[0])
@@ -140,25 +155,73 @@ class DemoDriverNode(Node):
             self.say(f'[{t:6.2f} s] *** {event.level} {event.wheel or "base"}: {event.fault}{note}')
 
 
+def start_node_processes(factories, log_dir):
+    """Each FDI node as its own process (``python -m <its module>``, as ``ros2 run`` starts it),
+    output to ``log_dir/<module>.log``; returns the Popen objects."""
+    processes = []
+    for factory in factories:
+        module = factory.__module__
+        log = open(Path(log_dir) / f'{module.rsplit(".", 1)[-1]}.log', 'w')  # noqa: SIM115
+        processes.append(subprocess.Popen([sys.executable, '-m', module], stdout=log,
+                                          stderr=subprocess.STDOUT, env=dict(os.environ)))
+        log.close()
+    return processes
+
+
+def stop_node_processes(processes):
+    """SIGINT (a normal stop for our mains), then kill what has not stopped in time."""
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    for process in processes:
+        try:
+            process.wait(timeout=PROCESS_STOP_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
 def run_demo(plan, events_path=None, max_wall_time=None):
-    """Run the live demo; returns (events, injected_at stamp or None)."""
+    """Run the live demo; returns (events, injected_at stamp or None, start stamp or None)."""
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
+    if plan.layout not in LAYOUT_CHOICES:
+        msg = f'unknown layout {plan.layout!r}; choose one of {", ".join(LAYOUT_CHOICES)}'
+        raise ValueError(msg)
+    factories = LAYOUTS['fused' if plan.layout == 'fused' else 'separate']
     context = Context()
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
     channel = [Parameter('can_channel', value=f'demo-{uuid.uuid4()}')]
-    nodes = []
+    nodes, processes = [], []
     log = EventLog(events_path) if events_path else None
     try:
         base_node = VirtualYoubotNode(context=context, parameter_overrides=channel)
         nodes.append(base_node)
         nodes.append(DriverShimNode(context=context, parameter_overrides=channel))
-        nodes += [factory(context=context) for factory in FDI_NODES]
-        driver = DemoDriverNode(plan, base_node.base, log, context=context)
+        waits_for = ()
+        if plan.layout == 'separate':
+            log_dir = tempfile.mkdtemp(prefix='youbot-fdi-demo-')
+            processes = start_node_processes(factories, log_dir)
+            waits_for = [sys.modules[f.__module__].NODE_NAME for f in factories]
+            if plan.console:
+                print(f'FDI nodes in {len(processes)} processes (logs: {log_dir}); waiting for '
+                      f'them on the graph ...', flush=True)
+        else:
+            nodes += [factory(context=context) for factory in factories]
+        driver = DemoDriverNode(plan, base_node.base, log, waits_for, context=context)
         nodes.append(driver)
         for node in nodes:
             executor.add_node(node)
+        start_deadline = time.monotonic() + PROCESS_START_TIMEOUT
+        while driver.start is None and time.monotonic() < start_deadline:
+            executor.spin_once(timeout_sec=0.01)
+            if any(p.poll() is not None for p in processes):
+                msg = f'an FDI node process ended at start (logs: {log_dir})'
+                raise RuntimeError(msg)
+        if driver.start is None:
+            msg = f'the FDI nodes did not appear within {PROCESS_START_TIMEOUT:g} s'
+            raise RuntimeError(msg)
         deadline = time.monotonic() + (max_wall_time or plan.script.duration * 3 + 30)
         while not driver.done and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.01)
@@ -166,6 +229,7 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             executor.spin_once(timeout_sec=0.01)
         return list(driver.events), driver.injected_at, driver.start
     finally:
+        stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)
         if log is not None:
             log.close()

@@ -1,53 +1,80 @@
-"""``observer`` node: the dynamic-model observer and residual generator beside the driver shim.
+"""``observer`` node: the dynamic-model observer beside the driver shim.
 
-Subscribes /wheel_commands and /joint_states; publishes ``/youbot_fdi/predicted`` (JointState:
-wheel speeds predicted from the measured currents, driver convention) and
-``/youbot_fdi/residuals`` (a labelled vector as JointState: ``name`` the residual or signal,
-``position`` its value, ``velocity`` its bound; see ResidualFrame.to_labelled). Observer and residual
-generation are one core object (:class:`~youbot_fdi.fdi.residuals.ResidualGenerator`) because they
-share their state: splitting them into two nodes would double the work or add a hop.
+Subscribes /wheel_commands and /joint_states; publishes ``/youbot_fdi/predicted``: for each
+/joint_states sample, what the model predicts for it (:class:`~youbot_fdi.fdi.observer.Prediction`)
+as a labelled vector (sensor_msgs/JointState stamped like the sample, ``name`` the field,
+``position`` its value; driver convention, per wheel ``<w>``):
+
+=====================  ======================================================================
+``from_currents_<w>``  wheel speed the dynamic model reaches from the measured currents [rad/s]
+``from_commands_<w>``  wheel speed the firmware PI loop reaches from the commands [rad/s]
+                       (current mode: the measured speed)
+``commands_before_<w>`` the same at the sample before [rad/s]
+``commanded_<w>``      the command in force: speed [rad/s], or in current mode the effort the
+                       command implies [N·m]
+``commanded_before_<w>`` the command in force at the sample before
+``explained_<w>``      torque the dynamics need for the measured speed change [N·m]
+``friction_<w>``       its friction part [N·m]
+``since``              stamp of the sample before: the interval the prediction spans [s]
+``velocity_mode``      1 velocity mode, 0 current mode
+``load_factor``        the platform-wide friction/load condition (1: as identified) [-]
+=====================  ======================================================================
+
+The ``residual_generator`` node turns a sample and its prediction into /youbot_fdi/residuals.
+With ``fused: true`` (a weak robot PC) this node does that itself and publishes the residuals
+too: one hop and one message fewer, the same numbers.
 
 Bad input (NaN, short arrays, unknown joint names, empty messages, stamps going backwards or
-repeated) is skipped or restarts the residuals, never raises a fault; a WARN on ``/diagnostics``
+repeated) is skipped or restarts the observer, never raises a fault; a WARN on ``/diagnostics``
 names it (at most one every ``input_warn_interval`` s).
 
 Parameters: the keys of ``config/fdi.yaml`` plus ``params_file`` (a ``youbot-fdi identify``
-output) and ``input_warn_interval`` [s].
+output), ``fused`` (read-only) and ``input_warn_interval`` [s].
 """
 import sys
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
+from youbot_fdi.fdi.observer import Prediction
 from youbot_fdi.fdi.pipeline import configure
 from youbot_fdi.fdi.residuals import ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.nodes.common import (declare_settings, NAME_PREFIX, now_seconds, seconds_to_stamp,
-                                     SENSOR_QOS, spin_nodes, stamp_to_seconds, STREAM_QOS)
+from youbot_fdi.nodes.common import (declare_settings, INPUT_WARN_INTERVAL, InputWarnings,
+                                     now_seconds, SENSOR_QOS, spin_nodes, stamp_to_seconds,
+                                     STREAM_QOS)
 from youbot_fdi.nodes.conversions import joint_state, labelled_vector
-from youbot_fdi.samples import InputReport, message_time, SampleMapper
-from youbot_fdi.topics import DIAGNOSTICS, JOINT_STATES, PREDICTED, RESIDUALS, WHEEL_COMMANDS
+from youbot_fdi.samples import message_time, SampleMapper
+from youbot_fdi.topics import JOINT_STATES, PREDICTED, RESIDUALS, WHEEL_COMMANDS
 
 NODE_NAME = 'observer'
-INPUT_WARN_INTERVAL = 1.0  # [s] between input-problem WARNs on /diagnostics (rate limit)
 
 
 class ObserverNode(Node):
-    """Thin adapter over :class:`~youbot_fdi.fdi.residuals.ResidualGenerator`."""
+    """Thin adapter over :class:`~youbot_fdi.fdi.observer.ModelObserver` (fused: the whole
+    :class:`~youbot_fdi.fdi.residuals.ResidualGenerator`). ``fused`` sets the parameter's
+    default (the composed executables)."""
 
-    def __init__(self, **kwargs):
+    def __init__(self, fused=False, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
         params_file = self.declare_parameter('params_file', '').value
         warn_interval = float(self.declare_parameter('input_warn_interval', INPUT_WARN_INTERVAL).value)
+        self.fused = bool(self.declare_parameter(
+            'fused', bool(fused), ParameterDescriptor(
+                read_only=True, description='also evaluate and publish the residuals (no '
+                                            'residual_generator node)')).value)
         self.model, self.settings = configure(declare_settings(self, FdiSettings), params_file)
         self.names = self.model.wheel_names
+        self.signs = self.model.kinematics.drive_signs
+        self.labels = Prediction.labels(self.names)
         self.generator = ResidualGenerator(self.model, self.settings)
+        self.observer = self.generator.observer
         self.mapper = SampleMapper(self.names)
-        self.input_report = InputReport(warn_interval)
-        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
+        self.warnings = InputWarnings(self, warn_interval)
         self.predicted_pub = self.create_publisher(JointState, PREDICTED, STREAM_QOS)
-        self.residual_pub = self.create_publisher(JointState, RESIDUALS, STREAM_QOS)
+        self.residual_pub = (self.create_publisher(JointState, RESIDUALS, STREAM_QOS)
+                             if self.fused else None)
         self.create_subscription(JointState, WHEEL_COMMANDS, self.on_command, SENSOR_QOS)
         self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
 
@@ -55,7 +82,7 @@ class ObserverNode(Node):
         stamp = float(message_time(stamp_to_seconds(msg.header.stamp), now_seconds(self)))
         sample = self.mapper.command_sample(stamp, msg.name, msg.velocity, msg.effort)
         if sample is not None:
-            self.generator.command(sample)
+            self.observer.command(sample)
         else:
             self.report_input()
 
@@ -66,29 +93,22 @@ class ObserverNode(Node):
         if sample is None:
             self.report_input()
             return
-        frame = self.generator.update(sample)
-        if frame is None:
+        if self.fused:
+            frame = self.generator.update(sample)
+            prediction = self.generator.last_prediction
+        else:
+            frame, prediction = None, self.observer.update(sample)
+        if prediction is None:
             self.report_input()
             return
-        from_currents, _ = self.generator.predictions()
-        self.predicted_pub.publish(joint_state(frame.stamp, self.names, velocity=from_currents))
-        self.residual_pub.publish(labelled_vector(frame.stamp, *frame.to_labelled(self.names)))
+        self.predicted_pub.publish(joint_state(sample.stamp, self.labels,
+                                               position=prediction.to_vector(self.signs)))
+        if frame is not None:
+            self.residual_pub.publish(labelled_vector(frame.stamp, *frame.to_labelled(self.names)))
 
     def report_input(self):
-        """A WARN on /diagnostics naming the input problems counted since the last one (at most
-        one every ``input_warn_interval`` s); the messages themselves were skipped or restarted
-        the residuals, never raised a fault."""
-        counters, now = {**self.mapper.counters, **self.generator.counters}, now_seconds(self)
-        problems = self.input_report.check(counters, now)
-        if not problems:
-            return
-        status = DiagnosticStatus(level=DiagnosticStatus.WARN, name=f'{NAME_PREFIX}/{NODE_NAME}: input',
-                                  hardware_id=NODE_NAME, message='; '.join(problems))
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in counters.items()]
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = seconds_to_stamp(now)
-        self.diag_pub.publish(array)
-        self.get_logger().warning(status.message)
+        """A rate-limited WARN on /diagnostics naming the input problems counted so far."""
+        self.warnings.check({**self.mapper.counters, **self.observer.counters})
 
 
 def main(args=None):

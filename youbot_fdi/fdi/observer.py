@@ -1,0 +1,533 @@
+"""The dynamic-model observer: what the model predicts for each /joint_states sample.
+
+Inputs are what the robot publishes (CONTRACT.md, driver convention): /joint_states samples and
+/wheel_commands. Internally everything is in the kinematic convention. For each sample the
+:class:`ModelObserver` predicts (a :class:`Prediction`):
+
+``from_currents``
+    the wheel speeds the dynamic model reaches from the measured currents alone [rad/s], with a
+    slow correction towards the measurement (``observer_time_constant``). The Coulomb friction is
+    taken at the measured speed (output injection): the observer error follows linear dynamics and
+    a recording is processed in blocks by a prefix scan instead of sample by sample.
+``from_commands``
+    the wheel speeds the firmware's PI loop reaches from the commands (velocity mode; emulated at
+    the firmware's period, with its current and integral limits) [rad/s]; in current mode the
+    measured speed (nothing to predict).
+``commanded``
+    the command in force at the sample (the clock rule, docs/fdi.md): speed [rad/s] in velocity
+    mode, the effort the command implies [N·m] in current mode.
+``explained``, ``friction``
+    the torque the exactly discretised dynamics need for the measured speed change over the
+    interval (with the learned correction, if any) and its friction part [N·m].
+``load_factor``
+    the platform-wide friction/load condition (1: as identified), slow and bounded.
+
+The residual generator (:class:`~youbot_fdi.fdi.residuals.ResidualEvaluator`) turns a sample and
+its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerator` runs both.
+:meth:`ModelObserver.update_batch` computes a block of samples at once (the replay);
+:meth:`ModelObserver.update` is the same computation for one sample (the live node).
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from youbot_fdi.fdi.learned import TorqueCorrection
+from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, scalar_recursion
+from youbot_fdi.model.dynamics import zoh_discretize
+from youbot_fdi.samples import CommandBatch, VELOCITY
+from youbot_fdi.structure.generate import wheel_suffix
+
+#: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
+STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
+DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
+#: Commands kept while no joint state arrives (a bound on memory, far above any input delay).
+MAX_PENDING_COMMANDS = 256
+#: Per-wheel fields of a prediction, in labelled-vector order (see Prediction.to_labelled).
+WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
+                'commanded_before', 'explained', 'friction')
+#: Scalar fields of a prediction, after the per-wheel ones.
+SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor')
+
+
+def signed_torque(torque, reference, signed_effort):
+    """The measured torque; a magnitude (``signed_effort`` false) takes the sign of ``reference``
+    (the explained torque, or at a restart the speed)."""
+    return torque if signed_effort else np.abs(torque) * np.sign(reference)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """What the model predicts for the sample stamped ``stamp`` (kinematic convention; per-wheel
+    arrays (n,), see the module docstring)."""
+
+    stamp: float  # [s]
+    since: float  # stamp of the sample before it: the interval the prediction spans [s]
+    from_currents: np.ndarray  # [rad/s]
+    from_commands: np.ndarray  # [rad/s]
+    commands_before: np.ndarray  # from_commands at ``since`` [rad/s]
+    commanded: np.ndarray  # [rad/s] or [N·m]
+    commanded_before: np.ndarray  # the command in force at ``since``
+    velocity_mode: bool
+    explained: np.ndarray  # [N·m]
+    friction: np.ndarray  # [N·m]
+    load_factor: float  # [-]
+
+    @staticmethod
+    def labels(wheel_names):
+        """The labels of :meth:`to_vector`: ``<field>_<w>`` for the per-wheel fields
+        (:data:`WHEEL_FIELDS`), then ``since``, ``velocity_mode`` (1/0) and ``load_factor``."""
+        suffixes = [wheel_suffix(w) for w in wheel_names]
+        return [f'{field}_{s}' for field in WHEEL_FIELDS for s in suffixes] + list(SCALAR_FIELDS)
+
+    def to_vector(self, signs):
+        """The values of :meth:`labels`, per-wheel fields in driver convention (``signs``: the
+        drive signs). :meth:`from_labelled` inverts it exactly (a sign flip is exact)."""
+        return np.concatenate([signs * getattr(self, field) for field in WHEEL_FIELDS]
+                              + [[self.since, float(self.velocity_mode), self.load_factor]])
+
+    @classmethod
+    def from_labelled(cls, stamp, labels, values, wheel_names, signs):
+        """Rebuild a prediction from :meth:`labels` and :meth:`to_vector` (matched by label);
+        ValueError naming the first missing label."""
+        wanted = cls.labels(wheel_names)
+        if list(labels) == wanted:  # as published: no look-up
+            picked = np.asarray(values, dtype=float)
+        else:
+            index = {label: i for i, label in enumerate(labels)}
+            missing = [label for label in wanted if label not in index]
+            if missing:
+                msg = f'prediction lacks {missing[0]}'
+                raise ValueError(msg)
+            picked = np.asarray(values, dtype=float)[[index[label] for label in wanted]]
+        n = len(wheel_names)
+        wheels = {field: signs * picked[j * n:(j + 1) * n] for j, field in enumerate(WHEEL_FIELDS)}
+        since, mode, load = picked[len(WHEEL_FIELDS) * n:]
+        return cls(stamp=stamp, since=float(since), velocity_mode=bool(mode > 0.5),
+                   load_factor=float(load), **wheels)
+
+
+@dataclass(frozen=True)
+class PredictionBatch:
+    """The predictions of a block of samples, one row each (rows (N, n) or (N,), as in
+    :class:`Prediction`); ``restart`` (N,) marks the samples that (re)started the observer: they
+    have no interval, so no prediction (their rows are placeholders, ``since`` NaN)."""
+
+    stamp: np.ndarray
+    since: np.ndarray
+    restart: np.ndarray
+    from_currents: np.ndarray
+    from_commands: np.ndarray
+    commands_before: np.ndarray
+    commanded: np.ndarray
+    commanded_before: np.ndarray
+    velocity_mode: np.ndarray
+    explained: np.ndarray
+    friction: np.ndarray
+    load_factor: np.ndarray
+
+    def __len__(self):
+        return len(self.stamp)
+
+
+class ModelObserver:
+    """Stateful model predictions for one base (commands, observer, firmware loop, load factor).
+
+    Parameters
+    ----------
+    model : PlatformModel
+    settings : FdiSettings
+    """
+
+    def __init__(self, model, settings):
+        self.model = model
+        self.settings = settings
+        self.signs = model.kinematics.drive_signs
+        dyn = model.dynamics
+        self.n = dyn.n_wheels
+        self.friction = np.diag(dyn.friction_matrix)
+        self._a_v = -dyn.mass_inverse @ dyn.friction_matrix
+        self._b_v = dyn.mass_inverse
+        self._cache = {}
+        firmware, drive = model.firmware, model.drive
+        self.period = firmware.period
+        self._phi1, self._gamma1 = self._discrete(self.period)[:2]
+        self.kp, self.ki = firmware.velocity_kp, firmware.velocity_ki
+        self.torque_per_amp = drive.torque_per_amp
+        #: one firmware period of the saturating loop: speed' = [phi | gamma k_t] [speed; current]
+        self._period_map = np.hstack([self._phi1, self._gamma1 * self.torque_per_amp])
+        self.max_current = drive.max_current
+        self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
+        self._loop_cache = {}
+        self._has_coulomb = bool(np.any(dyn.coulomb > 0))
+        learned = (model.profile.learned or {}).get('torque')
+        #: the learned torque correction (youbot_fdi.fdi.learned), None: physics only
+        self.correction = (None if learned is None or settings.physics_only else
+                           TorqueCorrection.from_mapping(learned, self.n, str(model.profile.source)))
+        self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
+        self.signed_effort = drive.signed_effort
+        #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
+        self._load = (np.zeros(2 * self.n), 1.0)
+        self._last = None  # (stamp, velocity, signed torque) of the last sample
+        #: samples that restart the observer, by cause (reported with the skipped messages)
+        self.counters = dict.fromkeys(STAMP_COUNTERS, 0)
+
+    # ------------------------------------------------------------------ helpers
+    def _count_restarts(self, dt):
+        """Count the steps ``dt`` [s] (array) that restart the observer, by cause: a stamp going
+        backwards, a stamp repeated (a duplicated sample), a gap longer than ``data_timeout``."""
+        for name, rows in zip(STAMP_COUNTERS, (dt < 0.0, dt == 0.0, dt > self.settings.data_timeout)):
+            self.counters[name] += int(np.count_nonzero(rows))
+
+    def _discrete(self, dt):
+        """(Phi, Gamma, Gamma^-1) over ``dt`` [s], cached per 0.1 ms."""
+        key = max(round(float(dt), DT_KEY_DECIMALS), 10.0 ** -DT_KEY_DECIMALS)
+        if key not in self._cache:
+            phi, gamma = zoh_discretize(self._a_v, self._b_v, key)
+            self._cache[key] = (phi, gamma, np.linalg.inv(gamma))
+        return self._cache[key]
+
+    def _discrete_rows(self, dt):
+        """(Phi, Gamma, Gamma^-1) per row of ``dt`` (N,): three (N, n, n) arrays."""
+        if np.all(dt == dt[0]):
+            return tuple(np.broadcast_to(m, (len(dt),) + m.shape) for m in self._discrete(dt[0]))
+        keys, inverse = np.unique(np.round(dt, DT_KEY_DECIMALS), return_inverse=True)
+        stacked = [np.stack(m) for m in zip(*(self._discrete(key) for key in keys))]
+        return tuple(m[inverse] for m in stacked)
+
+    def _coulomb(self, velocity):
+        if not self._has_coulomb:
+            return np.zeros_like(velocity)
+        return self.model.dynamics.coulomb_torque(velocity)
+
+    def _loop_step(self, steps):
+        """Exact unsaturated map of ``steps`` firmware periods of the PI loop.
+
+        State ``x = [speed; integral]``, ``x' = A x + B r + C c`` with r the speed target and c the
+        friction torque held over the interval.
+        """
+        if steps not in self._loop_cache:
+            n, period, g = self.n, self.period, self.torque_per_amp
+            phi, gamma, eye = self._phi1, self._gamma1, np.eye(self.n)
+            gain_p, gain_i = g * self.kp, g * self.ki
+            a1 = np.block([[phi - gamma * (gain_p + gain_i * period), gamma * gain_i],
+                           [-period * eye, eye]])
+            b1 = np.vstack([gamma * (gain_p + gain_i * period), period * eye])
+            c1 = np.vstack([-gamma, np.zeros((n, n))])
+            a, b, c = np.eye(2 * n), np.zeros((2 * n, n)), np.zeros((2 * n, n))
+            for _ in range(steps):
+                a, b, c = a1 @ a, a1 @ b + b1, a1 @ c + c1
+            self._loop_cache[steps] = (a, b, c)
+        return self._loop_cache[steps]
+
+    def _start_integral(self, torque, velocity, velocity_mode, target):
+        """The PI integral that explains the measured current at a (re)start, shape (..., n)."""
+        if self.ki <= 0:
+            return np.zeros_like(velocity)
+        current = np.where(np.isnan(torque), 0.0, torque) / self.torque_per_amp
+        error = np.where(np.asarray(velocity_mode)[..., None], target - velocity, 0.0)
+        return np.clip((current - self.kp * error) / self.ki, -self._integral_limit, self._integral_limit)
+
+    # ------------------------------------------------------------------ commands
+    def command(self, sample):
+        """Take a /wheel_commands sample (:class:`~youbot_fdi.samples.CommandSample`)."""
+        known = self._known_commands
+        keep = max(len(known) + 1 - MAX_PENDING_COMMANDS, 0)
+        self._known_commands = CommandBatch(
+            np.append(known.stamp[keep:], sample.stamp),
+            np.append(known.velocity_mode[keep:], sample.kind == VELOCITY),
+            np.concatenate([known.values[keep:], self.signs * np.asarray(sample.values, dtype=float)[None]]))
+
+    def _commands_in_force(self, stamp, commands=None, commands_before=None):
+        """(velocity mode (N,) bool, target (N, n) kinematic) at each stamp (N,).
+
+        The clock rule (docs/fdi.md): every message is placed by its own stamp, never by when it
+        arrived. In force at a sample stamped t: the latest known command stamped at or before
+        ``t - input_delay`` (the time a command takes to act, negative when commands are stamped
+        after the samples they produce), or zero speed once that is older than the shim's watchdog
+        (``command_timeout``) or when there is none. Known: the commands received so far (live),
+        or the chunk's (replay). Keeps the commands that may still come into force.
+        """
+        known = self._known_commands
+        if commands is not None and len(commands):
+            known = CommandBatch(np.concatenate([known.stamp, commands.stamp]),
+                                 np.concatenate([known.velocity_mode, commands.velocity_mode]),
+                                 np.concatenate([known.values, self.signs * commands.values]))
+        if len(known) > 1 and np.any(np.diff(known.stamp) < 0.0):
+            order = np.argsort(known.stamp, kind='stable')
+            known = CommandBatch(known.stamp[order], known.velocity_mode[order], known.values[order])
+        delay = self.settings.input_delay
+        received = np.searchsorted(known.stamp, stamp - delay, side='right')
+        index = received - 1
+        pick = np.maximum(index, 0)
+        none = index < 0
+        if len(known):
+            command_stamp = np.where(none, -np.inf, known.stamp[pick])
+            velocity_mode, values = known.velocity_mode[pick], known.values[pick]
+        else:
+            command_stamp = np.full(len(stamp), -np.inf)
+            velocity_mode, values = np.ones(len(stamp), dtype=bool), np.zeros((len(stamp), self.n))
+        expired = stamp - (command_stamp + delay) > self.settings.command_timeout
+        first_kept = int(index[-1]) if len(stamp) else len(known) - MAX_PENDING_COMMANDS
+        first_kept = max(first_kept, len(known) - MAX_PENDING_COMMANDS, 0)
+        self._known_commands = CommandBatch(known.stamp[first_kept:], known.velocity_mode[first_kept:],
+                                            known.values[first_kept:])
+        return velocity_mode | expired, np.where(expired[:, None], 0.0, values)
+
+    # ------------------------------------------------------------------ state
+    def reset(self):
+        """Forget the state (after a gap in the data)."""
+        self._last = None
+
+    def _restart(self, stamp, velocity, torque, velocity_mode, target):
+        """(Re)start from one sample (kinematic convention, [s], [rad/s], [N·m]; the command in
+        force): the predictions take the measurement, the PI integral the value that explains the
+        measured current."""
+        integral = self._start_integral(torque, velocity, velocity_mode, target)
+        self._observer = velocity.copy()
+        self._command_state = np.concatenate([velocity, integral])
+        torque = signed_torque(torque, velocity, self.signed_effort)  # no explained torque yet
+        self._last = (stamp, velocity, torque)
+        self._last_target = target
+
+    # ------------------------------------------------------------------ the command path
+    def _saturated(self, before, after, target):
+        """Rows (M,) where the PI loop leaves its linear range between states ``before`` and
+        ``after`` (M, 2n) under ``target`` (M, n)."""
+        n = self.n
+        error0 = target - before[:, :n]
+        start_current = self.kp * error0 + self.ki * (before[:, n:] + error0 * self.period)
+        end_current = self.kp * (target - after[:, :n]) + self.ki * after[:, n:]
+        return ((np.abs(start_current).max(axis=1) >= self.max_current)
+                | (np.abs(end_current).max(axis=1) >= self.max_current)
+                | (np.abs(after[:, n:]).max(axis=1) >= self._integral_limit))
+
+    def _stepped(self, state, steps, target, friction):
+        """``steps`` firmware periods of the saturating PI loop from ``state`` (2n,)."""
+        n, period = self.n, self.period
+        limit, max_current = self._integral_limit, self.max_current
+        speed, integral = state[:n], state[n:]
+        drift = self._gamma1 @ friction  # constant over the interval
+        joint = np.empty(2 * n)  # [speed; current], one matrix product a period
+        for _ in range(steps):
+            error = target - speed
+            integral = np.minimum(np.maximum(integral + error * period, -limit), limit)
+            joint[:n] = speed
+            joint[n:] = np.minimum(np.maximum(self.kp * error + self.ki * integral, -max_current),
+                                   max_current)
+            speed = self._period_map @ joint - drift
+        return np.concatenate([speed, integral])
+
+    def _command_step(self, state, steps, target, friction):
+        """``steps`` firmware periods of the velocity loop from ``state`` (2n,): the exact linear
+        map unless the loop saturates, then period by period. Returns (new state, saturated)."""
+        loop_a, loop_b, loop_c = self._loop_step(steps)
+        linear = loop_a @ state + loop_b @ target + loop_c @ friction
+        if self._saturated(state[None], linear[None], target[None])[0]:
+            return self._stepped(state, steps, target, friction), True
+        return linear, False
+
+    def _command_path(self, dt, hold, held, velocity_mode, target, friction):
+        """Command-path states (N, 2n) = [predicted speed, PI integral] after each row.
+
+        Velocity-mode rows advance the firmware loop over ``dt`` (N,) at its own period: exactly
+        (a prefix scan) while it is linear, period by period where it saturates. ``hold`` rows
+        (N,) bool take the state ``held`` (N, 2n) instead (a restart, current mode).
+        """
+        rows, n = len(dt), self.n
+        steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
+        a = np.zeros((rows, 2 * n, 2 * n))
+        b = np.array(held, dtype=float)
+        advancing = ~hold
+        for count in np.unique(steps[advancing]):
+            pick = advancing & (steps == count)
+            loop_a, loop_b, loop_c = self._loop_step(int(count))
+            a[pick] = loop_a
+            b[pick] = target[pick] @ loop_b.T + friction[pick] @ loop_c.T
+        saturable = advancing & velocity_mode
+        states = np.empty((rows, 2 * n))
+        state, k = self._command_state, 0
+        while k < rows:
+            scanned = affine_recursion(a[k:], b[k:], state)
+            before = np.concatenate([state[None], scanned[:-1]])
+            bad = saturable[k:] & self._saturated(before, scanned, target[k:])
+            good = int(np.argmax(bad)) if bad.any() else len(bad)
+            states[k:k + good] = scanned[:good]
+            k += good
+            if k == rows:
+                break
+            state = before[good]
+            saturated = True
+            while saturated and k < rows and saturable[k]:  # one by one until linear again
+                state, saturated = self._command_step(state, int(steps[k]), target[k], friction[k])
+                states[k] = state
+                k += 1
+        return states
+
+    # ------------------------------------------------------------------ the model's torque
+    # Shapes (n,) for one sample or (N, n) for a block.
+    def _explained(self, velocity, prev_velocity, phi, gamma_inv):
+        """(explained torque, its physics friction part, Coulomb torque) over one interval: the
+        torque the exactly discretised dynamics need for the measured speed change, with the
+        learned correction (if any) in the explained and Coulomb torques only."""
+        mean_speed = 0.5 * (velocity + prev_velocity)
+        coulomb = self._coulomb(mean_speed)
+        friction = self.friction * mean_speed + coulomb
+        if self.correction is not None:  # learned friction the physics misses (see fdi/learned.py)
+            coulomb = coulomb + self.correction(mean_speed)
+        explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
+        return explained, friction, coulomb
+
+    def _load_votes(self, mean_torque, explained, friction):
+        """Per wheel, (load part: measured minus inertial torque, friction part), zero where the
+        wheel does not vote on the load factor (friction torque under the torque floor or under
+        the inertial torque, effort unknown)."""
+        inertial = explained - friction
+        load_part = mean_torque - inertial
+        # Only in near-steady driving: where inertia dominates, the model's error does too.
+        votes = ((np.abs(friction) >= self.settings.torque_sigma) & (np.abs(inertial) <= np.abs(friction))
+                 & np.isfinite(load_part))
+        return np.where(votes, load_part, 0.0), np.where(votes, friction, 0.0)
+
+    def _load_factor(self, smoothed, previous):
+        """The platform-wide load factor from the smoothed (load part; friction) (..., 2n): the
+        part of the departure that every voting wheel shares (all heavier: the least heavy, all
+        lighter: the least light, else 1), bounded; ``previous`` where no wheel votes."""
+        n, limit = self.n, self.settings.load_factor_limit
+        load, friction = smoothed[..., :n], smoothed[..., n:]
+        votes = np.abs(friction) >= self.settings.torque_sigma
+        ratio = load / np.where(votes, friction, 1.0)
+        heavier = np.all(~votes | (ratio > 1.0), axis=-1)
+        lighter = np.all(~votes | (ratio < 1.0), axis=-1)
+        shared = np.where(heavier, np.min(np.where(votes, ratio, np.inf), axis=-1),
+                          np.where(lighter, np.max(np.where(votes, ratio, -np.inf), axis=-1), 1.0))
+        shared = np.clip(shared, 1.0 / limit, limit)
+        return shared, votes.any(axis=-1)
+
+    def _smoothing(self, step):
+        """Per-row weight of the past in the load factor's smoothing (``load_time_constant``)."""
+        return np.exp(-step / self.settings.load_time_constant)
+
+    # ------------------------------------------------------------------ the update
+    def update(self, sample):
+        """The :class:`Prediction` for one /joint_states sample
+        (:class:`~youbot_fdi.samples.JointSample`), or None when it (re)starts the observer (the
+        first sample, or after a gap or a stamp going backwards or repeated).
+
+        The live node's path: the computation of :meth:`update_batch` for one sample, step by step
+        (the same helpers; a test holds the two equal on fault recordings).
+        """
+        s, n = self.settings, self.n
+        stamp = sample.stamp
+        velocity, torque = self.signs * sample.velocity, self.signs * sample.effort
+        modes, targets = self._commands_in_force(np.array([stamp]))
+        velocity_mode, target = bool(modes[0]), targets[0]
+        dt = None if self._last is None else stamp - self._last[0]
+        if dt is None or not 0.0 < dt <= s.data_timeout:
+            if dt is not None:
+                self._count_restarts(np.array([dt]))
+            self._restart(stamp, velocity, torque, velocity_mode, target)
+            return None
+        last_stamp, last_velocity, last_torque = self._last
+        phi, gamma, gamma_inv = self._discrete(dt)
+        explained, friction, coulomb = self._explained(velocity, last_velocity, phi, gamma_inv)
+        torque = signed_torque(torque, explained, self.signed_effort)
+        mean_torque = 0.5 * (torque + last_torque)
+        keep = self._smoothing(dt)
+        smoothed = keep * self._load[0] + (1.0 - keep) * np.concatenate(
+            self._load_votes(mean_torque, explained, friction))
+        shared, voted = self._load_factor(smoothed, self._load[1])
+        load = float(shared) if voted else self._load[1]
+        self._load = (smoothed, load)
+        # The load condition adds to the friction the predictions work against (at the measured speed).
+        coulomb = coulomb + (load - 1.0) * friction
+
+        applied = mean_torque if np.isfinite(mean_torque).all() else 0.0
+        predicted = phi @ self._observer + gamma @ (applied - coulomb)
+        self._observer = predicted + (dt / s.observer_time_constant) * (velocity - predicted)
+
+        before = self._command_state[:n]
+        steps = max(1, int(np.rint(dt / self.period)))
+        self._command_state = (self._command_step(self._command_state, steps, target, coulomb)[0]
+                               if velocity_mode else np.concatenate([velocity, np.zeros(n)]))
+        prediction = Prediction(
+            stamp=stamp, since=last_stamp, from_currents=predicted,
+            from_commands=self._command_state[:n], commands_before=before, commanded=target,
+            commanded_before=self._last_target, velocity_mode=velocity_mode, explained=explained,
+            friction=friction, load_factor=load)
+        self._last_target = target
+        self._last = (stamp, velocity, torque)
+        return prediction
+
+    def update_batch(self, joints, commands=None, commands_before=None):
+        """The predictions of a block of /joint_states samples
+        (:class:`~youbot_fdi.samples.JointBatch`), with the commands that arrived among them
+        (``commands_before[k]`` of ``commands`` came before sample k; see
+        :class:`~youbot_fdi.samples.SampleChunk`): a :class:`PredictionBatch` of every sample,
+        ``restart`` marking the first and any after a gap longer than ``data_timeout`` or a stamp
+        going backwards or repeated."""
+        s, n, rows = self.settings, self.n, len(joints)
+        stamp = joints.stamp
+        velocity, torque = self.signs * joints.velocity, self.signs * joints.effort
+        velocity_mode, target = self._commands_in_force(stamp, commands, commands_before)
+        if rows == 0:
+            empty = np.empty((0, n))
+            return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 5,
+                                   velocity_mode, empty, empty, np.empty(0))
+        first = self._last is None
+        if first:
+            self._restart(stamp[0], velocity[0], torque[0], velocity_mode[0], target[0])
+        last_stamp, last_velocity, last_torque = self._last
+        prev_stamp = np.concatenate([[last_stamp], stamp[:-1]])
+        prev_velocity = np.concatenate([last_velocity[None], velocity[:-1]])
+        dt = stamp - prev_stamp
+        restart = ~((dt > 0.0) & (dt <= s.data_timeout))
+        if first:
+            restart[0] = True
+        self._count_restarts(dt[1:] if first else dt)
+        dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
+        phi, gamma, gamma_inv = self._discrete_rows(dt)
+        step = dt[:, None]
+        explained, friction, coulomb = self._explained(velocity, prev_velocity, phi, gamma_inv)
+        torque = signed_torque(torque, explained, self.signed_effort)
+        if not self.signed_effort and restart.any():  # as _restart signs it
+            torque[restart] = signed_torque(torque[restart], velocity[restart], False)
+        prev_torque = np.concatenate([last_torque[None], torque[:-1]])
+        mean_torque = 0.5 * (torque + prev_torque)
+        keep = self._smoothing(dt)
+        smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
+            self._load_votes(mean_torque, explained, friction), axis=1), self._load[0])
+        shared, voted = self._load_factor(smoothed, self._load[1])
+        load = last_true_value(voted, shared, self._load[1])
+        coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
+
+        # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
+        known = np.isfinite(mean_torque).all(axis=1, keepdims=True)
+        forced = matvec(gamma, np.where(known, mean_torque, 0.0) - coulomb)
+        correction = step / s.observer_time_constant
+        a = (1.0 - correction)[:, :, None] * phi
+        b = (1.0 - correction) * forced + correction * velocity
+        a[restart], b[restart] = 0.0, velocity[restart]
+        observer_before = self._observer
+        observer = affine_recursion(a, b, observer_before)
+        predicted = matvec(phi, np.concatenate([observer_before[None], observer[:-1]])) + forced
+
+        hold = restart | ~velocity_mode
+        integral = np.zeros_like(velocity)
+        if restart.any():
+            integral[restart] = self._start_integral(torque[restart], velocity[restart],
+                                                     velocity_mode[restart], target[restart])
+        held = np.concatenate([velocity, integral], axis=1)
+        command_before = self._command_state
+        path = self._command_path(dt, hold, held, velocity_mode, target, coulomb)
+        speed = path[:, :n]
+        batch = PredictionBatch(
+            stamp=stamp, since=np.where(restart, np.nan, prev_stamp), restart=restart,
+            from_currents=predicted, from_commands=speed,
+            commands_before=np.concatenate([command_before[None, :n], speed[:-1]]),
+            commanded=target, commanded_before=np.concatenate([self._last_target[None], target[:-1]]),
+            velocity_mode=velocity_mode, explained=explained, friction=friction, load_factor=load)
+        self._last = (stamp[-1], velocity[-1], torque[-1])
+        self._observer, self._command_state = observer[-1], path[-1]
+        self._load = (smoothed[-1], float(load[-1]))
+        self._last_target = target[-1]
+        return batch
