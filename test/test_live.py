@@ -39,11 +39,11 @@ def test_injected_fault_is_detected_and_isolated_live(tmp_path):
 def test_one_process_layouts_detect_the_demo_fault(layout):
     """The separate layout (processes) is the default above; the one-process layouts find the
     same fault on the same wheel."""
-    plan = DemoPlan(SCRIPT.scaled_to(5.0), 'runaway', 'wheel_joint_fl', 2.5, console=False,
+    plan = DemoPlan(SCRIPT.scaled_to(5.0), 'stuck', 'wheel_joint_fl', 2.5, console=False,
                     layout=layout)
     events, injected_at, _ = run_demo(plan)
     found = alarms(events)
-    assert found and (found[0].wheel, found[0].fault) == ('wheel_joint_fl', 'runaway')
+    assert found and (found[0].wheel, found[0].fault) == ('wheel_joint_fl', 'stuck')
     assert 0.0 <= found[0].stamp - injected_at <= LIVE_DELAY
 
 

@@ -122,19 +122,26 @@ def bench_can(cycles=200):
                         'raw virtual-bus exchange of 16 frames', raw)]
 
 
-def bench_nodes(seconds=5.0):
-    """CPU share of the FDI node suite at 100 Hz and its latency, against a bare relay node."""
+NODE_TARGET = 1.5  # each layout <= this x its relay arrangement, CPU and latency (issue 13)
+
+
+def bench_nodes(seconds=5.0, progress=print):
+    """Per layout of the FDI nodes: CPU share at 100 Hz and /joint_states -> decision latency,
+    against as many bare relay nodes in the same arrangement (youbot_fdi.nodes.bench)."""
     try:
         from youbot_fdi.nodes.bench import bench_node_suite
     except ImportError as err:
         return [BenchResult(f'node suite (skipped: {err})', float('nan'), '', 'relay', float('nan'))]
-    suite, relay, suite_latency, relay_latency = bench_node_suite(seconds)
-    return [BenchResult('nodes: bridge+observer+decision CPU at 100 Hz', suite * 100, '% core',
-                        'bare JointState relay', relay * 100),
-            BenchResult('nodes: /joint_states -> decision, p50', np.median(suite_latency) * 1000, 'ms',
-                        'relay p50', np.median(relay_latency) * 1000),
-            BenchResult('nodes: /joint_states -> decision, p99', np.percentile(suite_latency, 99) * 1000,
-                        'ms', 'relay p99', np.percentile(relay_latency, 99) * 1000)]
+    results = []
+    for case, ((cpu, latency), (relay_cpu, relay_latency)) in bench_node_suite(seconds, progress).items():
+        note = f'target <= {NODE_TARGET:g}x'
+        results += [
+            BenchResult(f'nodes {case}: CPU at 100 Hz', cpu * 100, '% core', 'relays', relay_cpu * 100, note),
+            BenchResult(f'nodes {case}: latency p50', np.median(latency) * 1000, 'ms', 'relays p50',
+                        np.median(relay_latency) * 1000, note),
+            BenchResult(f'nodes {case}: latency p99', np.percentile(latency, 99) * 1000, 'ms',
+                        'relays p99', np.percentile(relay_latency, 99) * 1000, note)]
+    return results
 
 
 REPLAY_DRIVE = 60.0  # [s] of aggressive driving per replay case, 100 Hz
@@ -300,7 +307,7 @@ def run_all(progress=print):
                         ('start', bench_start), ('fuzz', lambda: bench_fuzz(progress)),
                         ('replay', lambda: bench_replay(progress)),
                         ('fleet', lambda: bench_fleet(progress)),
-                        ('nodes', bench_nodes)):
+                        ('nodes', lambda: bench_nodes(progress=progress))):
         progress(f'running {label} ...')
         outcome = case()
         results.extend(outcome if isinstance(outcome, list) else [outcome])

@@ -1,8 +1,22 @@
-"""Benchmark of the FDI node suite: CPU share at 100 Hz and latency from /joint_states to decision.
+"""Benchmark of the FDI node suite, per layout: CPU share at 100 Hz and latency from /joint_states
+to the decision node having judged the sample (when a fault would go out on /youbot_fdi/faults).
 
-Baseline, measured in the same run: a bare relay node (subscribe JointState, republish), the
-cheapest thing a node on this stream can do.
+Each layout (:data:`CASES`) is measured beside its baseline in the same run: as many bare relay
+nodes (subscribe JointState, republish) in the same arrangement: one relay per FDI node, chained
+like the FDI nodes' hops (observer -> [residual_generator ->] decision) with the kinematics
+bridge's counterpart beside the chain, in one executor or one process each like the layout.
+CPU counts every process of the case (the feeder included, the same in both). Clocks: latency
+uses CLOCK_MONOTONIC (``time.monotonic``), shared by the processes of a case.
+
+``python -m youbot_fdi.nodes.bench --help``: the worker a process-per-node case starts.
 """
+import argparse
+import json
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -14,13 +28,37 @@ from sensor_msgs.msg import JointState
 import rclpy
 
 from youbot_fdi.nodes.common import SENSOR_QOS, shutdown_nodes, stamp_to_seconds, STREAM_QOS
+from youbot_fdi.nodes.composed import LAYOUTS
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
-from youbot_fdi.nodes.kinematics_bridge import KinematicsBridgeNode
-from youbot_fdi.nodes.observer import ObserverNode
-from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
+from youbot_fdi.topics import JOINT_STATES, RESIDUALS, WHEEL_COMMANDS
 
 RATE = 100.0  # [Hz]
+WARM_UP = 2.0  # [s] after every node is on the graph: discovery, first callbacks, caches
+START_TIMEOUT = 60.0  # [s] for the processes of a case to appear on the graph
+STOP_TIMEOUT = 10.0  # [s] after SIGINT
+#: (name, FDI layout, one process per node, executor (:func:`make_executor`)). The events
+#: executor case shows what the executor's own cost is (docs/nodes.md); our executables do not
+#: use it: in rclpy 7.1.6 a node spinning it does not stop on SIGINT (it spins the CPU instead).
+CASES = (('composed', 'separate', False, 'single'), ('fused', 'fused', False, 'single'),
+         ('separate', 'separate', True, 'single'),
+         ('composed, events executor', 'separate', False, 'events'))
+EXECUTOR_VARIABLE = 'YOUBOT_FDI_BENCH_EXECUTOR'  # tells a worker process its case's executor
+
+
+def make_executor(kind, context=None):
+    """``single``: rclpy's SingleThreadedExecutor (what our executables spin); ``events``:
+    rclpy.experimental.EventsExecutor (the same callbacks without a wait set rebuilt per
+    wake-up)."""
+    if kind == 'events':
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
+KEY_DECIMALS = 6  # samples are matched by their stamp rounded to 1 µs
+
+
+def stamp_key(stamp):
+    return round(stamp, KEY_DECIMALS)
 
 
 class _Feeder(Node):
@@ -32,9 +70,12 @@ class _Feeder(Node):
         self.sent = {}
         self.joint_pub = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
         self.command_pub = self.create_publisher(JointState, WHEEL_COMMANDS, STREAM_QOS)
+        self.running = False
         self.create_timer(1.0 / RATE, self.on_timer)
 
     def on_timer(self):
+        if not self.running:
+            return
         stamp = time.time()
         while True:  # the commands recorded since the last sample, then the sample
             kind, sample = self.samples[self.index % len(self.samples)]
@@ -42,48 +83,26 @@ class _Feeder(Node):
             if kind == 'joint':
                 break
             self.command_pub.publish(joint_state(stamp, self.names, velocity=sample.values))
-        self.sent[round(stamp, 6)] = time.perf_counter()
+        self.sent[stamp_key(stamp)] = time.monotonic()
         self.joint_pub.publish(joint_state(stamp, self.names, sample.position, sample.velocity,
                                            sample.effort))
 
 
-class _Relay(Node):
-    def __init__(self, **kwargs):
-        super().__init__('bench_relay', **kwargs)
+class Relay(Node):
+    """A bare relay: ``source`` -> ``target`` (JointState), remembering when it passed each."""
+
+    def __init__(self, index, source, target, **kwargs):
+        super().__init__(f'bench_relay_{index}', **kwargs)
         self.done = {}
-        self.pub = self.create_publisher(JointState, '/relay', STREAM_QOS)
-        self.create_subscription(JointState, JOINT_STATES, self.on_msg, SENSOR_QOS)
+        self.pub = self.create_publisher(JointState, target, STREAM_QOS)
+        self.create_subscription(JointState, source, self.on_msg, SENSOR_QOS)
 
     def on_msg(self, msg):
         self.pub.publish(msg)
-        self.done[round(stamp_to_seconds(msg.header.stamp), 6)] = time.perf_counter()
+        self.done[stamp_key(stamp_to_seconds(msg.header.stamp))] = time.monotonic()
 
 
-def _run(make_nodes, samples, names, seconds):
-    context = Context()
-    rclpy.init(context=context)
-    executor = SingleThreadedExecutor(context=context)
-    nodes = []
-    try:
-        feeder = _Feeder(samples, names, context=context)
-        nodes = [feeder] + make_nodes(context)
-        for node in nodes:
-            executor.add_node(node)
-        for _ in range(50):  # warm up: discovery, first callbacks
-            executor.spin_once(timeout_sec=0.01)
-        cpu, wall = time.process_time(), time.perf_counter()
-        end = wall + seconds
-        while time.perf_counter() < end:
-            executor.spin_once(timeout_sec=0.01)
-        share = (time.process_time() - cpu) / (time.perf_counter() - wall)
-        done = nodes[-1].done
-        latency = [done[s] - feeder.sent[s] for s in done if s in feeder.sent]
-        return share, np.array(latency)
-    finally:
-        shutdown_nodes(executor, nodes, context)
-
-
-class _TimedDecision(DecisionNode):
+class TimedDecision(DecisionNode):
     """The decision node, remembering when it finished each sample."""
 
     def __init__(self, **kwargs):
@@ -92,24 +111,158 @@ class _TimedDecision(DecisionNode):
 
     def on_residuals(self, msg):
         super().on_residuals(msg)
-        self.done[round(stamp_to_seconds(msg.header.stamp), 6)] = time.perf_counter()
+        self.done[stamp_key(stamp_to_seconds(msg.header.stamp))] = time.monotonic()
 
 
-def bench_node_suite(seconds=5.0):
-    """(suite CPU share, relay CPU share, suite latencies [s], relay latencies [s])."""
+def relay_arrangement(count):
+    """(source, target) of ``count`` relays: one beside the chain (the kinematics bridge's
+    counterpart), the others chained from /joint_states; the last is the chain's end."""
+    topics = [JOINT_STATES] + [f'/bench_relay/hop_{k}' for k in range(1, count)]
+    return [(JOINT_STATES, '/bench_relay/side')] + list(zip(topics[:-1], topics[1:]))
+
+
+def _cpu_seconds(pid):
+    """utime + stime of process ``pid`` [s] (Linux /proc)."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def _worker_command(role, timings=None, source=None, target=None, index=0):
+    command = [sys.executable, '-m', __name__, role]
+    if role == 'relay':
+        command += ['--index', str(index), '--source', source, '--target', target]
+    return command + (['--timings', str(timings)] if timings else [])
+
+
+def _run(local_nodes, commands, names_on_graph, samples, names, seconds, executor_kind,
+         timings=None):
+    """Feed 100 Hz for ``seconds`` to ``local_nodes`` (factories taking ``context``) and the
+    processes ``commands``, everything on ``executor_kind`` executors; returns (CPU share of one
+    core, latencies [s] at the chain's end: the last local node's ``done``, or the ``timings``
+    file a process wrote)."""
+    context = Context()
+    rclpy.init(context=context)
+    executor = make_executor(executor_kind, context)
+    nodes, processes = [], []
+    try:
+        feeder = _Feeder(samples, names, context=context)
+        nodes = [feeder] + [make(context=context) for make in local_nodes]
+        for node in nodes:
+            executor.add_node(node)
+        environment = {**os.environ, EXECUTOR_VARIABLE: executor_kind}
+        processes = [subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                      env=environment) for c in commands]
+        deadline = time.monotonic() + START_TIMEOUT
+        while not set(names_on_graph) <= set(feeder.get_node_names()):
+            if time.monotonic() > deadline or any(p.poll() is not None for p in processes):
+                msg = f'bench nodes did not start: {sorted(set(names_on_graph) - set(feeder.get_node_names()))}'
+                raise RuntimeError(msg)
+            executor.spin_once(timeout_sec=0.05)
+        feeder.running = True
+        warm_end = time.monotonic() + WARM_UP
+        while time.monotonic() < warm_end:
+            executor.spin_once(timeout_sec=0.01)
+        cpu = time.process_time() + sum(_cpu_seconds(p.pid) for p in processes)
+        wall = time.monotonic()
+        sent_before = set(feeder.sent)
+        while time.monotonic() < wall + seconds:
+            executor.spin_once(timeout_sec=0.01)
+        cpu = time.process_time() + sum(_cpu_seconds(p.pid) for p in processes) - cpu
+        share = cpu / (time.monotonic() - wall)
+        feeder.running = False
+    finally:
+        for process in processes:
+            process.send_signal(signal.SIGINT)
+        for process in processes:
+            try:
+                process.wait(timeout=STOP_TIMEOUT)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+        shutdown_nodes(executor, nodes, context)
+    done = (nodes[-1].done if timings is None else
+            {float(k): v for k, v in json.loads(Path(timings).read_text()).items()})
+    latency = [done[s] - feeder.sent[s] for s in done if s in feeder.sent and s not in sent_before]
+    return share, np.array(latency)
+
+
+def bench_layout(layout, processes, executor_kind, samples, names, seconds, tmp):
+    """((FDI CPU share, latencies), (relay CPU share, latencies)) of one layout."""
+    factories = LAYOUTS[layout]
+    count = len(factories)
+    arrangement = relay_arrangement(count)
+    relay_names = [f'bench_relay_{k}' for k in range(count)]
+    fdi_names = [sys.modules[getattr(f, 'func', f).__module__].NODE_NAME for f in factories]
+    if not processes:
+        fdi = _run(list(factories[:-1]) + [TimedDecision], [], fdi_names, samples, names, seconds,
+                   executor_kind)
+        relay = _run([lambda context, k=k, st=st: Relay(k, *st, context=context)
+                      for k, st in enumerate(arrangement)], [], relay_names, samples, names, seconds,
+                     executor_kind)
+        return fdi, relay
+    fdi_timings, relay_timings = Path(tmp) / f'{layout}-fdi.json', Path(tmp) / f'{layout}-relay.json'
+    fdi_commands = ([[sys.executable, '-m', getattr(f, 'func', f).__module__] for f in factories[:-1]]
+                    + [_worker_command('decision', fdi_timings)])
+    relay_commands = [_worker_command('relay', relay_timings if k == count - 1 else None, *st, index=k)
+                      for k, st in enumerate(arrangement)]
+    fdi = _run([], fdi_commands, fdi_names, samples, names, seconds, executor_kind, fdi_timings)
+    relay = _run([], relay_commands, relay_names, samples, names, seconds, executor_kind,
+                 relay_timings)
+    return fdi, relay
+
+
+def bench_node_suite(seconds=5.0, progress=None):
+    """{case name: ((FDI CPU share, latencies [s]), (relay CPU share, latencies [s]))} for every
+    layout of :data:`CASES`."""
     from youbot_fdi.bag.reader import RecordingReader
     from youbot_fdi.model.profile import load_model
     from youbot_fdi.model.scenario import DriveScript, Segment
     from youbot_fdi.tmcm.recordings import record_drive
 
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
     model = load_model('youbot')
     names = model.wheel_names
     script = DriveScript((Segment('forward', (0.3, 0.0, 0.0), 2.0), Segment('turn', (0.1, 0.2, 0.8), 2.0)))
+    results = {}
     with tempfile.TemporaryDirectory() as tmp:
         record_drive(f'{tmp}/rec', model, script)
         with RecordingReader(f'{tmp}/rec', names) as reader:
             samples = [('command' if hasattr(s, 'kind') else 'joint', s) for s in reader.samples()]
-    suite = _run(lambda c: [KinematicsBridgeNode(context=c), ObserverNode(context=c),
-                            _TimedDecision(context=c)], samples, names, seconds)
-    relay = _run(lambda c: [_Relay(context=c)], samples, names, seconds)
-    return suite[0], relay[0], suite[1], relay[1]
+        for case, layout, processes, executor_kind in CASES:
+            if progress is not None:
+                progress(f'  nodes: {case} and its relays ...')
+            results[case] = bench_layout(layout, processes, executor_kind, samples, names, seconds, tmp)
+    return results
+
+
+def worker_main(argv=None):
+    """A node of a process-per-node bench case; writes its timings (``--timings``) at SIGINT."""
+    parser = argparse.ArgumentParser(prog='python -m youbot_fdi.nodes.bench',
+                                     description='One timed node of the node-suite benchmark.')
+    parser.add_argument('role', choices=['decision', 'relay'])
+    parser.add_argument('--index', type=int, default=0)
+    parser.add_argument('--source', default=JOINT_STATES)
+    parser.add_argument('--target', default='/bench_relay/out')
+    parser.add_argument('--timings', help='JSON file for {stamp: time.monotonic()} at exit')
+    args = parser.parse_args(argv)
+    rclpy.init()
+    node = (TimedDecision() if args.role == 'decision' else
+            Relay(args.index, args.source, args.target))
+    executor = make_executor(os.environ.get(EXECUTOR_VARIABLE, 'single'))
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if args.timings:
+            Path(args.timings).write_text(json.dumps({repr(k): v for k, v in node.done.items()}))
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(worker_main())

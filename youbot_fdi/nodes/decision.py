@@ -26,7 +26,6 @@ from youbot_fdi.nodes.conversions import BASE_COMPONENT, fault_array, LEVELS
 from youbot_fdi.topics import DIAGNOSTICS, FAULTS, RESIDUALS
 
 NODE_NAME = 'decision'
-STALL_CHECK_PERIOD = 0.05  # [s]
 
 
 class DecisionNode(Node):
@@ -49,7 +48,9 @@ class DecisionNode(Node):
         self.create_subscription(JointState, RESIDUALS, self.on_residuals, SENSOR_QOS)
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.create_timer(1.0 / rate, self.publish_diagnostics)
-        self.create_timer(STALL_CHECK_PERIOD, self.check_stall)
+        # Fires only after data_timeout without residuals: every residual restarts it (no
+        # periodic wake-ups while data flow).
+        self.stall_timer = self.create_timer(self.settings.data_timeout, self.check_stall)
 
     def on_residuals(self, msg):
         stamp = stamp_to_seconds(msg.header.stamp)
@@ -59,6 +60,7 @@ class DecisionNode(Node):
             self.get_logger().warning(f'residual vector ignored: {err}', throttle_duration_sec=2.0)
             return
         self._last_stamp, self._last_arrival = stamp, now_seconds(self)
+        self.stall_timer.reset()
         self.emit(self.decision.data_resumed(stamp) + self.decision.update(frame))
 
     def on_reset(self, _request, response):
@@ -72,8 +74,8 @@ class DecisionNode(Node):
         return response
 
     def check_stall(self):
-        if self._last_arrival is not None and \
-                now_seconds(self) - self._last_arrival > self.settings.data_timeout:
+        """No residual for ``data_timeout`` (the timer ran out): comm_loss of the base."""
+        if self._last_arrival is not None:
             self.emit(self.decision.data_stalled(self._last_stamp))
 
     def emit(self, events):
