@@ -14,7 +14,6 @@ import argparse
 import json
 import os
 from pathlib import Path
-import signal
 import subprocess
 import sys
 import tempfile
@@ -27,16 +26,16 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.nodes.common import SENSOR_QOS, shutdown_nodes, stamp_to_seconds, STREAM_QOS
+from youbot_fdi.nodes.common import (SENSOR_QOS, shutdown_nodes, stamp_to_seconds,
+                                     stop_node_processes, STREAM_QOS)
 from youbot_fdi.nodes.composed import LAYOUTS
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
-from youbot_fdi.topics import JOINT_STATES, RESIDUALS, WHEEL_COMMANDS
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 RATE = 100.0  # [Hz]
 WARM_UP = 2.0  # [s] after every node is on the graph: discovery, first callbacks, caches
 START_TIMEOUT = 60.0  # [s] for the processes of a case to appear on the graph
-STOP_TIMEOUT = 10.0  # [s] after SIGINT
 #: (name, FDI layout, one process per node, executor (:func:`make_executor`)). The events
 #: executor case shows what the executor's own cost is (docs/nodes.md); our executables do not
 #: use it: in rclpy 7.1.6 a node spinning it does not stop on SIGINT (it spins the CPU instead).
@@ -171,14 +170,7 @@ def _run(local_nodes, commands, names_on_graph, samples, names, seconds, executo
         share = cpu / (time.monotonic() - wall)
         feeder.running = False
     finally:
-        for process in processes:
-            process.send_signal(signal.SIGINT)
-        for process in processes:
-            try:
-                process.wait(timeout=STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)
     done = (nodes[-1].done if timings is None else
             {float(k): v for k, v in json.loads(Path(timings).read_text()).items()})

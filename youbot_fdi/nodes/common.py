@@ -113,6 +113,25 @@ class InputWarnings:
         self.node.get_logger().warning(status.message)
 
 
+NODE_PROCESS_STOP_TIMEOUT = 10.0  # [s] after SIGINT before a node process is killed
+
+
+def stop_node_processes(processes, timeout=NODE_PROCESS_STOP_TIMEOUT):
+    """Stop node processes (``subprocess.Popen``): SIGINT (a normal stop for our mains), then
+    kill what has not stopped within ``timeout`` [s]."""
+    import signal
+    import subprocess
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    for process in processes:
+        try:
+            process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
 def shutdown_nodes(executor, nodes, context=None):
     """Stop ``executor``, close (if they can) and destroy ``nodes`` newest first, shut rclpy down."""
     executor.shutdown()

@@ -12,7 +12,6 @@ executor; ``fused`` the same with the observer computing the residuals itself.
 from dataclasses import dataclass
 import os
 from pathlib import Path
-import signal
 import subprocess
 import sys
 import tempfile
@@ -29,7 +28,8 @@ from sensor_msgs.msg import JointState
 import rclpy
 
 from youbot_fdi.fdi.eventlog import EventLog
-from youbot_fdi.nodes.common import LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes
+from youbot_fdi.nodes.common import (LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes,
+                                     stop_node_processes)
 from youbot_fdi.nodes.composed import LAYOUTS
 from youbot_fdi.nodes.conversions import event_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
@@ -42,7 +42,6 @@ STATUS_PERIOD = 1.0  # console line [s]
 SETTLE_AFTER = 1.0  # keep running after the script ends [s]
 LAYOUT_CHOICES = ('separate', 'composed', 'fused')
 PROCESS_START_TIMEOUT = 60.0  # [s] for the FDI node processes to appear on the graph
-PROCESS_STOP_TIMEOUT = 10.0  # [s] after SIGINT before they are killed
 
 
 @dataclass(frozen=True)
@@ -166,19 +165,6 @@ def start_node_processes(factories, log_dir):
                                           stderr=subprocess.STDOUT, env=dict(os.environ)))
         log.close()
     return processes
-
-
-def stop_node_processes(processes):
-    """SIGINT (a normal stop for our mains), then kill what has not stopped in time."""
-    for process in processes:
-        if process.poll() is None:
-            process.send_signal(signal.SIGINT)
-    for process in processes:
-        try:
-            process.wait(timeout=PROCESS_STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
 
 
 def run_demo(plan, events_path=None, max_wall_time=None):
