@@ -1,0 +1,111 @@
+"""Fault reactions (issue 15): the wheel allocation without lost wheels and the reaction policy."""
+import math
+
+import numpy as np
+import pytest
+
+from youbot_fdi.errors import ConfigError
+from youbot_fdi.fdi.decision import FaultEvent
+from youbot_fdi.fdi.reactions import ReactionSettings, Reactor
+from youbot_fdi.model.allocation import Allocation, AllocationError, substitute_readings
+from youbot_fdi.model.profile import load_model
+from youbot_fdi.settings import load_settings
+
+TWIST = np.array([0.3, -0.2, 0.5])  # [m/s, m/s, rad/s]
+
+
+def omni_ring(count, radius=0.2, wheel=0.05):
+    """The Jacobian of ``count`` omni wheels evenly on a ring (any N)."""
+    rows = []
+    for k in range(count):
+        angle = 2 * math.pi * k / count
+        rows.append((-math.sin(angle) / wheel, math.cos(angle) / wheel, radius / wheel))
+    return np.array(rows)
+
+
+@pytest.mark.parametrize('lost', range(4))
+def test_youbot_drives_on_three_wheels_with_any_one_lost(lost):
+    kinematics = load_model('youbot').kinematics
+    allocation = Allocation.for_lost(kinematics.jacobian, [lost])
+    rolling = kinematics.inverse(TWIST)
+    free = allocation.wheel_speeds(TWIST)  # the lost wheel rolls freely: nothing to make up
+    np.testing.assert_allclose(free, rolling, atol=1e-12)
+    dragging = rolling[lost] * 0.4  # it drags: the others make up for it
+    speeds = allocation.wheel_speeds(TWIST, [dragging])
+    measured = speeds.copy()
+    measured[lost] = dragging
+    np.testing.assert_allclose(kinematics.forward(measured), TWIST, atol=1e-12)
+    assert not np.allclose(np.delete(speeds, lost), np.delete(rolling, lost))
+
+
+def test_n_wheels_and_layouts_that_lose_rank():
+    ring = omni_ring(6)
+    allocation = Allocation.for_lost(ring, [1, 4])
+    speeds = allocation.wheel_speeds(TWIST, [0.0, 0.0])
+    measured = speeds.copy()
+    measured[[1, 4]] = 0.0
+    np.testing.assert_allclose(np.linalg.pinv(ring) @ measured, TWIST, atol=1e-12)
+    with pytest.raises(AllocationError, match='rank'):
+        Allocation.for_lost(ring, [0, 1, 2, 3])  # two wheels left for three degrees of freedom
+    robotino = load_model('robotino').kinematics
+    with pytest.raises(AllocationError, match='do not determine'):
+        Allocation.for_lost(robotino.jacobian, [0], list(robotino.platform.names))
+
+
+def test_a_frozen_reading_is_replaced_by_its_kinematic_estimate():
+    kinematics = load_model('youbot').kinematics
+    true = kinematics.inverse(TWIST)
+    frozen = true.copy()
+    frozen[2] = 1.234
+    np.testing.assert_allclose(substitute_readings(kinematics.jacobian, frozen, [2]), true, atol=1e-12)
+
+
+def event(level, wheel, fault, stamp=1.0):
+    return FaultEvent(stamp, level, wheel, fault)
+
+
+def test_reactor_follows_the_policy_and_reset_ends_it(tmp_path):
+    kinematics = load_model('youbot').kinematics
+    reactor = Reactor(kinematics, load_settings(ReactionSettings, 'kinematics_bridge',
+                                                _reactions_yaml(tmp_path, react=True)))
+    started = reactor.on_event(event('ERROR', 'wheel_joint_fl', 'torque_loss'))
+    assert [(r.level, r.action, r.wheel) for r in started] == [('INFO', 'degrade', 'wheel_joint_fl')]
+    assert reactor.degraded == ['wheel_joint_fl'] and not reactor.stopped
+    speeds = reactor.wheel_speeds(TWIST)
+    np.testing.assert_allclose(kinematics.forward(speeds), 0.5 * TWIST, atol=1e-12)  # scaled
+    reactor.on_event(event('ERROR', 'wheel_joint_br', 'encoder_freeze'))
+    assert reactor.substituted == ['wheel_joint_br']
+    ended = reactor.on_event(event('OK', 'wheel_joint_fl', 'torque_loss', 2.0))
+    assert [(r.action, r.wheel) for r in ended] == [('end_degrade', 'wheel_joint_fl')]
+    np.testing.assert_allclose(reactor.wheel_speeds(TWIST), kinematics.inverse(TWIST))
+    runaway = reactor.on_event(event('ERROR', 'wheel_joint_bl', 'runaway', 3.0))
+    assert runaway[0].action == 'motor_off' and reactor.stopped
+    assert reactor.motors_to_switch_off() == ['wheel_joint_bl']
+    np.testing.assert_array_equal(reactor.wheel_speeds(TWIST), np.zeros(4))
+    assert reactor.on_event(event('ERROR', None, 'comm_loss'))[0].action == 'stop'
+    assert runaway[0].to_dict()['level'] == 'INFO' and 'action' in runaway[0].to_dict()
+
+
+def test_degrading_a_base_that_would_lose_rank_stops_it_instead():
+    robotino = load_model('robotino').kinematics
+    reactor = Reactor(robotino, ReactionSettings(react=True))
+    reactions = reactor.on_event(event('ERROR', robotino.platform.names[0], 'friction'))
+    assert [r.action for r in reactions] == ['degrade', 'stop'] and 'rank' in reactions[-1].detail
+    assert reactor.stopped
+
+
+def test_policy_is_validated_and_off_by_default():
+    with pytest.raises(ConfigError, match='on_stuck'):
+        ReactionSettings(on_stuck='explode').validate()
+    reactor = Reactor(load_model('youbot').kinematics)
+    assert reactor.on_event(event('ERROR', 'wheel_joint_fl', 'stuck')) == []
+    assert not reactor.stopped
+
+
+def _reactions_yaml(folder, react):
+    """config/reactions.yaml with ``react`` set (the shipped file, parsed as a node would)."""
+    from youbot_fdi.config_paths import config_dir
+    text = (config_dir() / 'reactions.yaml').read_text().replace('react: false', f'react: {str(react).lower()}')
+    path = folder / 'reactions.yaml'
+    path.write_text(text)
+    return path

@@ -1,0 +1,189 @@
+"""Fault reactions: from fault events to what the base is commanded (the report's robust control).
+
+Plain numpy, no rclpy. :class:`Reactor` takes the fault events of the decision
+(:class:`~youbot_fdi.fdi.decision.FaultEvent`), applies the policy of ``config/reactions.yaml``
+(:class:`ReactionSettings`) and says, per /cmd_vel, what the wheels are commanded
+(:meth:`Reactor.wheel_speeds`) and, per /joint_states, what odometry and control take as the
+wheel speeds (:meth:`Reactor.readings`). Each reaction it starts or ends is a
+:class:`Reaction`: an INFO event line (``"level": "INFO", "action": …``).
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from youbot_fdi.errors import ConfigError
+from youbot_fdi.faults import FaultKind
+from youbot_fdi.model.allocation import Allocation, AllocationError, substitute_readings
+
+MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE = 'motor_off', 'stop', 'degrade', 'substitute', 'none'
+ACTIONS = (MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE)
+INFO = 'INFO'
+
+
+@dataclass(frozen=True)
+class ReactionSettings:
+    """The reaction policy (``config/reactions.yaml``): an action per fault kind."""
+
+    react: bool = False  # apply the reactions at all
+    on_runaway: str = MOTOR_OFF
+    on_stuck: str = STOP
+    on_comm_loss: str = STOP
+    on_torque_loss: str = DEGRADE
+    on_friction: str = DEGRADE
+    on_encoder_freeze: str = SUBSTITUTE
+    on_unknown: str = STOP
+    degraded_speed_scale: float = 0.5  # /cmd_vel scale while driving degraded [-]
+    motor_off_service: str = '/driver_shim/switch_off_motor'  # + '_<wheel suffix>'
+
+    def validate(self, source='<settings>'):
+        for kind in FaultKind:
+            action = getattr(self, f'on_{kind.value}')
+            if action not in ACTIONS:
+                msg = f'{source}: on_{kind.value} must be one of {", ".join(ACTIONS)}, got {action!r}'
+                raise ConfigError(msg)
+        if not 0.0 < self.degraded_speed_scale <= 1.0:
+            msg = f'{source}: degraded_speed_scale must be in (0, 1], got {self.degraded_speed_scale}'
+            raise ConfigError(msg)
+
+    def action(self, fault):
+        """The action for a fault kind (its value, e.g. ``'torque_loss'``); ``unknown``'s for
+        anything else."""
+        return getattr(self, f'on_{fault}', self.on_unknown)
+
+
+@dataclass(frozen=True)
+class Reaction:
+    """A reaction started (or ended): one INFO line of the events file."""
+
+    stamp: float  # [s], the fault event's stamp
+    action: str  # one of ACTIONS, or 'end_<action>' when it ends
+    wheel: object  # joint name or None
+    fault: str
+    detail: str = ''
+    level: str = INFO
+
+    def to_dict(self):
+        """The JSON object of an events file line (the fault-event keys plus ``action``)."""
+        return {'stamp': round(self.stamp, 6), 'level': self.level, 'wheel': self.wheel,
+                'fault': self.fault, 'action': self.action, 'residuals': [], 'detail': self.detail}
+
+
+class Reactor:
+    """The reactions in force for one base.
+
+    Parameters
+    ----------
+    kinematics : Kinematics
+    settings : ReactionSettings
+    """
+
+    def __init__(self, kinematics, settings=ReactionSettings()):
+        self.kinematics = kinematics
+        self.settings = settings
+        self.names = list(kinematics.platform.names)
+        self._active = {}  # component (wheel or None) -> (fault, action)
+        self._allocation = None
+        self._replaced = ()
+
+    # ------------------------------------------------------------------ state
+    @property
+    def stopped(self):
+        """True while a reaction holds the base still."""
+        return any(action in (STOP, MOTOR_OFF) for _, action in self._active.values())
+
+    @property
+    def degraded(self):
+        """Wheel names driven around (degraded driving), in wheel order."""
+        return [self.names[k] for k in (self._allocation.lost if self._allocation else ())]
+
+    @property
+    def substituted(self):
+        """Wheel names whose reading is replaced by its kinematic estimate."""
+        return [self.names[k] for k in self._replaced]
+
+    def _wheels(self, action):
+        return sorted((self.names.index(w) for w, (_, a) in self._active.items()
+                       if a == action and w in self.names))
+
+    def _rebuild(self, stamp):
+        """The allocation and substitution of the reactions in force; a layout that loses rank
+        turns degraded driving into a stop (a Reaction saying so)."""
+        notes = []
+        lost = self._wheels(DEGRADE)
+        try:
+            self._allocation = Allocation.for_lost(self.kinematics.jacobian, lost, self.names) if lost else None
+        except AllocationError as err:
+            self._allocation = None
+            for wheel in (self.names[k] for k in lost):
+                fault = self._active[wheel][0]
+                self._active[wheel] = (fault, STOP)
+                notes.append(Reaction(stamp, STOP, wheel, fault, str(err)))
+        replaced = self._wheels(SUBSTITUTE)
+        try:
+            if replaced:
+                Allocation.for_lost(self.kinematics.jacobian, replaced, self.names)
+            self._replaced = tuple(replaced)
+        except AllocationError as err:
+            self._replaced = ()
+            for wheel in (self.names[k] for k in replaced):
+                fault = self._active[wheel][0]
+                self._active[wheel] = (fault, STOP)
+                notes.append(Reaction(stamp, STOP, wheel, fault, str(err)))
+        return notes
+
+    def on_event(self, event):
+        """Take a fault event; returns the reactions it starts or ends (in order). An ERROR starts
+        its fault's action (replacing that component's previous one); an OK (cleared, or the
+        decision's reset) ends it."""
+        if not self.settings.react or event.level not in ('ERROR', 'OK'):
+            return []
+        component = event.wheel
+        previous = self._active.pop(component, None)
+        reactions = []
+        if previous is not None:
+            reactions.append(Reaction(event.stamp, f'end_{previous[1]}', component, previous[0],
+                                      'fault cleared' if event.level == 'OK' else
+                                      f'replaced by the reaction to {event.fault}'))
+        if event.level == 'ERROR':
+            action = self.settings.action(event.fault)
+            if action == MOTOR_OFF and component is None:
+                action = STOP
+            if action in (DEGRADE, SUBSTITUTE) and component is None:
+                action = STOP
+            if action != NONE:
+                self._active[component] = (event.fault, action)
+                reactions.append(Reaction(event.stamp, action, component, event.fault,
+                                          _DETAILS[action].format(scale=self.settings.degraded_speed_scale)))
+        return reactions + self._rebuild(event.stamp)
+
+    # ------------------------------------------------------------------ commands
+    def wheel_speeds(self, twist, measured=None):
+        """Wheel speeds (n,) [rad/s] (kinematic convention) for the set-point ``twist`` (3,):
+        zero while stopped; in degraded driving the healthy wheels carry the scaled twist given
+        the lost wheels' ``measured`` speeds (n,, kinematic convention; default: rolling freely)."""
+        if self.stopped:
+            return np.zeros(len(self.names))
+        if self._allocation is None:
+            return self.kinematics.inverse(twist)
+        twist = self.settings.degraded_speed_scale * np.asarray(twist, dtype=float)
+        lost = None if measured is None else np.asarray(measured, float)[list(self._allocation.lost)]
+        return self._allocation.wheel_speeds(twist, lost)
+
+    def readings(self, speeds):
+        """Measured wheel speeds (n,) with the substituted wheels replaced by their kinematic
+        estimate from the others (for odometry and control)."""
+        if not self._replaced:
+            return np.asarray(speeds, dtype=float)
+        return substitute_readings(self.kinematics.jacobian, speeds, self._replaced)
+
+    def motors_to_switch_off(self):
+        """Wheel names whose motor a reaction wants off."""
+        return [w for w, (_, a) in self._active.items() if a == MOTOR_OFF and w is not None]
+
+
+_DETAILS = {
+    MOTOR_OFF: 'motor off through the driver shim; base stopped',
+    STOP: 'base stopped (zero wheel commands) until the fault clears or decision ~/reset',
+    DEGRADE: 'degraded driving: the other wheels carry the base at {scale:g} x /cmd_vel',
+    SUBSTITUTE: 'reading replaced by its kinematic estimate from the other wheels',
+}
