@@ -11,6 +11,7 @@ from youbot_fdi.model.scenario import load_script  # noqa: E402
 from youbot_fdi.nodes.demo import DemoPlan, run_demo  # noqa: E402
 
 _, SCRIPT = load_script()
+SCRIPT_NAMES = ('wheel_joint_fl', 'wheel_joint_fr', 'wheel_joint_bl', 'wheel_joint_br')  # youBot order
 LIVE_DELAY = 0.15  # [s] live detection allows for executor scheduling on a shared 2-core machine
 
 
@@ -107,3 +108,45 @@ def test_fault_free_live_drive_raises_no_alarm():
     events, injected_at, start = run_demo(plan)
     assert injected_at is None and start is not None
     assert alarms(events) == []
+
+
+REACTIONS = {'runaway': 'motor_off', 'stuck': 'stop', 'torque_loss': 'degrade',
+             'encoder_freeze': 'substitute'}
+
+
+@pytest.mark.parametrize('fault, wheel', [('runaway', 'wheel_joint_br'), ('stuck', 'wheel_joint_fl'),
+                                          ('torque_loss', 'wheel_joint_bl'),
+                                          ('encoder_freeze', 'wheel_joint_fr')])
+def test_reactions_act_through_the_topics(fault, wheel, monkeypatch):
+    """demo --react (issue 15): the reaction is an INFO event of the right action and wheel; a
+    runaway motor's stop frame is on the bus within 100 ms of the fault event; a stopped base
+    comes to rest."""
+    import time
+    from youbot_fdi.tmcm.tmcl import TmclCommand
+    from youbot_fdi.tmcm.virtual_base import VirtualYoubot
+    stops = []
+    execute = VirtualYoubot._execute
+
+    def recording(self, module, request):
+        if request.command == TmclCommand.MST:
+            stops.append((time.time(), self.modules.index(module)))
+        return execute(self, module, request)
+
+    monkeypatch.setattr(VirtualYoubot, '_execute', recording)
+    plan = DemoPlan(SCRIPT.scaled_to(8.0), fault, wheel, 3.0, console=False, layout='composed',
+                    react=True)
+    run = run_demo(plan)
+    assert {e.wheel for e in alarms(run.events)} == {wheel}
+    named = [e for e in alarms(run.events) if e.fault == fault]  # the type may be refined later
+    assert named, f'{fault} never named: {alarms(run.events)}'
+    error = named[0]
+    reaction = [r for r in run.reactions if r.action == REACTIONS[fault]][0]
+    assert (reaction.level, reaction.wheel) == ('INFO', wheel)
+    assert reaction.stamp == pytest.approx(error.stamp, abs=1e-6)  # the events file rounds to 1 µs
+    names = list(SCRIPT_NAMES)
+    if fault == 'runaway':
+        assert [index for _, index in stops] == [names.index(wheel)]
+        assert stops[0][0] - error.stamp <= 0.1
+    if fault in ('runaway', 'stuck'):
+        settled = [true for stamp, _, true in run.tracking if stamp > error.stamp + 1.0]
+        assert settled and max(abs(v) for v in settled[-1]) < 0.05  # the base is at rest

@@ -71,8 +71,12 @@ def test_reactor_follows_the_policy_and_reset_ends_it(tmp_path):
     started = reactor.on_event(event('ERROR', 'wheel_joint_fl', 'torque_loss'))
     assert [(r.level, r.action, r.wheel) for r in started] == [('INFO', 'degrade', 'wheel_joint_fl')]
     assert reactor.degraded == ['wheel_joint_fl'] and not reactor.stopped
-    speeds = reactor.wheel_speeds(TWIST)
-    np.testing.assert_allclose(kinematics.forward(speeds), 0.5 * TWIST, atol=1e-12)  # scaled
+    slow = 0.3 * TWIST  # within the degraded wheel-speed cap: followed exactly
+    np.testing.assert_allclose(kinematics.forward(reactor.wheel_speeds(slow)), slow, atol=1e-12)
+    fast = reactor.wheel_speeds(10 * TWIST)  # capped as a whole: same direction, slower
+    assert np.max(np.abs(fast)) == pytest.approx(8.0)
+    np.testing.assert_allclose(kinematics.forward(fast) / np.linalg.norm(kinematics.forward(fast)),
+                               TWIST / np.linalg.norm(TWIST), atol=1e-12)
     reactor.on_event(event('ERROR', 'wheel_joint_br', 'encoder_freeze'))
     assert reactor.substituted == ['wheel_joint_br']
     ended = reactor.on_event(event('OK', 'wheel_joint_fl', 'torque_loss', 2.0))

@@ -32,8 +32,35 @@ def add_parser(subparsers):
                         help='as --composed, the observer computing the residuals itself '
                              '(youbot_fdi_fused)')
     parser.set_defaults(layout='separate')
+    parser.add_argument('--react', action='store_true',
+                        help='the kinematics bridge applies the fault reactions of '
+                             'config/reactions.yaml (motor off, stop, degraded driving, '
+                             'substituted readings); they are INFO lines in --events')
+    parser.add_argument('--summary', metavar='S.json',
+                        help="write the run's figures as JSON (detection delay, reactions, RMS "
+                             "body-velocity tracking error from the fault to the end against the "
+                             "simulator's true velocity), to compare runs with and without --react")
     parser.add_argument('--quiet', action='store_true', help='only the summary')
     parser.set_defaults(run=run)
+
+
+def write_summary(path, args, run, alarms, tracking):
+    """The run's figures as one JSON object."""
+    import json
+    from pathlib import Path
+    first = next((e for e in alarms if run.injected_at is not None and e.stamp >= run.injected_at), None)
+    summary = {
+        'fault': args.fault, 'wheel': args.wheel, 'at': args.at, 'layout': args.layout,
+        'react': args.react,
+        'detected': first is not None and first.wheel == args.wheel,
+        'detection_delay_s': None if first is None else round(first.stamp - run.injected_at, 4),
+        'alarms': [e.to_dict() for e in alarms],
+        'reactions': [r.to_dict() for r in run.reactions],
+        'tracking_rms_linear_mps': None if tracking is None else round(tracking[0], 5),
+        'tracking_rms_angular_radps': None if tracking is None else round(tracking[1], 5),
+        'tracking_from': 'fault injection' if run.injected_at is not None else 'drive start',
+    }
+    Path(path).write_text(json.dumps(summary, indent=2) + '\n')
 
 
 def run(args):
@@ -42,10 +69,11 @@ def run(args):
     _, script = load_script(args.script, args.duration)
     fault = None if args.fault == NONE else args.fault
     plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record,
-                    layout=args.layout)
+                    layout=args.layout, react=args.react)
     print(f'youbot-fdi demo ({args.layout} FDI nodes): {script.duration:.1f} s drive, '
           + (f'{fault} on {args.wheel} at {args.at:g} s' if fault else 'no fault injected'), flush=True)
-    events, injected_at, start = run_demo(plan, args.events)
+    run = run_demo(plan, args.events)
+    events, injected_at, start = run
     alarms = [e for e in events if e.level == 'ERROR']
     print('\nsummary:')
     if fault is None:
@@ -63,8 +91,17 @@ def run(args):
         others = [e for e in alarms if e.wheel != args.wheel]
         if others:
             print(f'  other alarms: {[(e.wheel, e.fault) for e in others]}')
+    tracking = run.tracking_error(injected_at if injected_at is not None else start)
+    if tracking is not None:
+        span = 'after the fault' if injected_at is not None else 'over the drive'
+        print(f'  RMS tracking error {span}: {tracking[0]:.3f} m/s, {tracking[1]:.3f} rad/s')
+    if run.reactions:
+        print('  reactions: ' + ', '.join(f'{r.action} ({r.wheel or "base"})' for r in run.reactions))
+    if args.summary:
+        write_summary(args.summary, args, run, alarms, tracking)
+        print(f'  summary: {args.summary}')
     if args.events:
-        print(f'  events: {args.events} ({len(events)} lines)')
+        print(f'  events: {args.events} ({len(events) + len(run.reactions)} lines)')
     if args.record:
         print(f'  recording: {args.record} (try: youbot-fdi replay {args.record} --events E.jsonl)')
     return 0

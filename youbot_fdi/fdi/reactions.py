@@ -8,6 +8,7 @@ wheel speeds (:meth:`Reactor.readings`). Each reaction it starts or ends is a
 :class:`Reaction`: an INFO event line (``"level": "INFO", "action": …``).
 """
 from dataclasses import dataclass
+import json
 
 import numpy as np
 
@@ -32,7 +33,7 @@ class ReactionSettings:
     on_friction: str = DEGRADE
     on_encoder_freeze: str = SUBSTITUTE
     on_unknown: str = STOP
-    degraded_speed_scale: float = 0.5  # /cmd_vel scale while driving degraded [-]
+    degraded_max_wheel_speed: float = 8.0  # wheel-speed cap while driving degraded [rad/s]
     motor_off_service: str = '/driver_shim/switch_off_motor'  # + '_<wheel suffix>'
 
     def validate(self, source='<settings>'):
@@ -41,8 +42,8 @@ class ReactionSettings:
             if action not in ACTIONS:
                 msg = f'{source}: on_{kind.value} must be one of {", ".join(ACTIONS)}, got {action!r}'
                 raise ConfigError(msg)
-        if not 0.0 < self.degraded_speed_scale <= 1.0:
-            msg = f'{source}: degraded_speed_scale must be in (0, 1], got {self.degraded_speed_scale}'
+        if not self.degraded_max_wheel_speed > 0.0:
+            msg = f'{source}: degraded_max_wheel_speed must be > 0, got {self.degraded_max_wheel_speed}'
             raise ConfigError(msg)
 
     def action(self, fault):
@@ -66,6 +67,10 @@ class Reaction:
         """The JSON object of an events file line (the fault-event keys plus ``action``)."""
         return {'stamp': round(self.stamp, 6), 'level': self.level, 'wheel': self.wheel,
                 'fault': self.fault, 'action': self.action, 'residuals': [], 'detail': self.detail}
+
+    def to_json(self):
+        """One line of an events file."""
+        return json.dumps(self.to_dict())
 
 
 class Reactor:
@@ -153,21 +158,24 @@ class Reactor:
             if action != NONE:
                 self._active[component] = (event.fault, action)
                 reactions.append(Reaction(event.stamp, action, component, event.fault,
-                                          _DETAILS[action].format(scale=self.settings.degraded_speed_scale)))
+                                          _DETAILS[action].format(cap=self.settings.degraded_max_wheel_speed)))
         return reactions + self._rebuild(event.stamp)
 
     # ------------------------------------------------------------------ commands
     def wheel_speeds(self, twist, measured=None):
         """Wheel speeds (n,) [rad/s] (kinematic convention) for the set-point ``twist`` (3,):
-        zero while stopped; in degraded driving the healthy wheels carry the scaled twist given
-        the lost wheels' ``measured`` speeds (n,, kinematic convention; default: rolling freely)."""
+        zero while stopped; in degraded driving the healthy wheels carry the twist given the lost
+        wheels' ``measured`` speeds (n,, kinematic convention; default: rolling freely), scaled as
+        a whole so that no wheel exceeds ``degraded_max_wheel_speed``."""
         if self.stopped:
             return np.zeros(len(self.names))
         if self._allocation is None:
             return self.kinematics.inverse(twist)
-        twist = self.settings.degraded_speed_scale * np.asarray(twist, dtype=float)
         lost = None if measured is None else np.asarray(measured, float)[list(self._allocation.lost)]
-        return self._allocation.wheel_speeds(twist, lost)
+        speeds = self._allocation.wheel_speeds(np.asarray(twist, dtype=float), lost)
+        fastest = float(np.max(np.abs(speeds)))
+        cap = self.settings.degraded_max_wheel_speed
+        return speeds * (cap / fastest) if fastest > cap else speeds
 
     def readings(self, speeds):
         """Measured wheel speeds (n,) with the substituted wheels replaced by their kinematic
@@ -184,6 +192,6 @@ class Reactor:
 _DETAILS = {
     MOTOR_OFF: 'motor off through the driver shim; base stopped',
     STOP: 'base stopped (zero wheel commands) until the fault clears or decision ~/reset',
-    DEGRADE: 'degraded driving: the other wheels carry the base at {scale:g} x /cmd_vel',
+    DEGRADE: 'degraded driving: the other wheels carry the base (wheel speeds up to {cap:g} rad/s)',
     SUBSTITUTE: 'reading replaced by its kinematic estimate from the other wheels',
 }

@@ -59,6 +59,33 @@ def event_from_status(status):
                       detail=values.get('detail', ''))
 
 
+def reaction_array(reactions, stamp):
+    """A DiagnosticArray with one status per fault reaction (/youbot_fdi/reactions): level OK
+    (INFO is not a REP-107 level; the ``level`` KeyValue says INFO), name
+    ``youbot_fdi/kinematics_bridge: reaction <wheel|base>``, the event in its KeyValues."""
+    array = DiagnosticArray()
+    array.header.stamp = seconds_to_stamp(stamp)
+    for reaction in reactions:
+        status = DiagnosticStatus(level=DiagnosticStatus.OK,
+                                  name=f'{NAME_PREFIX}/kinematics_bridge: reaction '
+                                       f'{reaction.wheel or BASE_COMPONENT}',
+                                  hardware_id=reaction.wheel or BASE_COMPONENT,
+                                  message=f'{reaction.action}: {reaction.detail}')
+        status.values = [KeyValue(key=key, value=repr(value) if key == 'stamp' else str(value or ''))
+                         for key, value in reaction.to_dict().items() if key != 'residuals']
+        array.status.append(status)
+    return array
+
+
+def reaction_from_status(status):
+    """The :class:`~youbot_fdi.fdi.reactions.Reaction` a /youbot_fdi/reactions status carries."""
+    from youbot_fdi.fdi.reactions import Reaction
+    values = {kv.key: kv.value for kv in status.values}
+    return Reaction(stamp=float(values.get('stamp', 'nan')), action=values.get('action', ''),
+                    wheel=values.get('wheel') or None, fault=values.get('fault', ''),
+                    detail=values.get('detail', ''))
+
+
 def labelled_vector(stamp, labels, values, bounds):
     """A labelled vector as JointState: name = label, position = value, velocity = bound."""
     return joint_state(stamp, labels, position=values, velocity=bounds)

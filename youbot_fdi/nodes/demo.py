@@ -20,6 +20,7 @@ import uuid
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
+import numpy as np
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -31,11 +32,11 @@ from youbot_fdi.fdi.eventlog import EventLog
 from youbot_fdi.nodes.common import (LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes,
                                      stop_node_processes)
 from youbot_fdi.nodes.composed import LAYOUTS
-from youbot_fdi.nodes.conversions import event_from_status
+from youbot_fdi.nodes.conversions import event_from_status, reaction_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
 from youbot_fdi.structure.generate import wheel_suffix
-from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, WHEEL_COMMANDS
+from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, REACTIONS, WHEEL_COMMANDS
 
 COMMAND_RATE = 20.0  # /cmd_vel [Hz]
 STATUS_PERIOD = 1.0  # console line [s]
@@ -55,6 +56,7 @@ class DemoPlan:
     console: bool = True
     record: object = None  # a new rosbag2 directory for /joint_states and /wheel_commands
     layout: str = 'separate'  # one of LAYOUT_CHOICES
+    react: bool = False  # the kinematics bridge applies the fault reactions (config/reactions.yaml)
 
 
 class DemoDriverNode(Node):
@@ -66,6 +68,10 @@ class DemoDriverNode(Node):
         self.waits_for = set(waits_for)  # node names that must be on the graph before driving
         self.cmd_pub = self.create_publisher(Twist, CMD_VEL, 10)
         self.create_subscription(DiagnosticArray, FAULTS, self.on_faults, LATCHED_QOS)
+        self.create_subscription(DiagnosticArray, REACTIONS, self.on_reactions, LATCHED_QOS)
+        self.reactions = []
+        #: per timer tick after the start: (time [s], commanded twist (3,), true twist (3,))
+        self.tracking = []
         self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
         self.events, self.injected_at, self.last_state = [], None, None
         self.start = None
@@ -94,6 +100,10 @@ class DemoDriverNode(Node):
             self.start = now_seconds(self)
         t = self.elapsed()
         vx, vy, wz = (float(v) for v in self.plan.script.twists([t])[0])
+        _, true_speeds = self.base.wheel_state()
+        kinematics = self.base.model.kinematics
+        self.tracking.append((now_seconds(self), (vx, vy, wz),
+                              tuple(kinematics.forward(kinematics.from_driver(true_speeds)))))
         msg = Twist()
         msg.linear.x, msg.linear.y, msg.angular.z = vx, vy, wz
         self.cmd_pub.publish(msg)
@@ -139,6 +149,18 @@ class DemoDriverNode(Node):
             state[event.wheel] = event
         return [e for e in state.values() if e.level == 'ERROR']
 
+    def on_reactions(self, msg):
+        for status in msg.status:
+            reaction = reaction_from_status(status)
+            if reaction in self.reactions:
+                continue
+            self.reactions.append(reaction)
+            if self.log is not None:
+                self.log.write(reaction)
+            t = reaction.stamp - self.start if self.start is not None else float('nan')
+            self.say(f'[{t:6.2f} s] --> {reaction.action} on {reaction.wheel or "base"} '
+                     f'({reaction.fault}): {reaction.detail}')
+
     def on_faults(self, msg):
         for status in msg.status:
             event = event_from_status(status)
@@ -154,21 +176,50 @@ class DemoDriverNode(Node):
             self.say(f'[{t:6.2f} s] *** {event.level} {event.wheel or "base"}: {event.fault}{note}')
 
 
-def start_node_processes(factories, log_dir):
+def start_node_processes(factories, log_dir, parameters=None):
     """Each FDI node as its own process (``python -m <its module>``, as ``ros2 run`` starts it),
-    output to ``log_dir/<module>.log``; returns the Popen objects."""
+    output to ``log_dir/<module>.log``, with ``parameters`` {module: {name: value}} as
+    ``--ros-args -p``; returns the Popen objects."""
     processes = []
     for factory in factories:
         module = factory.__module__
+        overrides = (parameters or {}).get(module, {})
+        arguments = ['--ros-args'] + [a for name, value in overrides.items()
+                                      for a in ('-p', f'{name}:={str(value).lower()}')] if overrides else []
         log = open(Path(log_dir) / f'{module.rsplit(".", 1)[-1]}.log', 'w')  # noqa: SIM115
-        processes.append(subprocess.Popen([sys.executable, '-m', module], stdout=log,
+        processes.append(subprocess.Popen([sys.executable, '-m', module, *arguments], stdout=log,
                                           stderr=subprocess.STDOUT, env=dict(os.environ)))
         log.close()
     return processes
 
 
+@dataclass(frozen=True)
+class DemoRun:
+    """What a demo run saw: fault events, when the fault went in and the drive started [s],
+    the reactions, and the tracking record (time, commanded twist, true twist of the simulator)."""
+
+    events: list
+    injected_at: object
+    start: object
+    reactions: list
+    tracking: list
+
+    def __iter__(self):  # (events, injected_at, start), as callers unpack it
+        return iter((self.events, self.injected_at, self.start))
+
+    def tracking_error(self, since):
+        """RMS body-velocity tracking error from ``since`` [s] to the end: (linear [m/s],
+        angular [rad/s]), against the simulator's true velocity; None without samples."""
+        rows = [(c, t) for stamp, c, t in self.tracking if stamp >= since]
+        if not rows:
+            return None
+        error = np.array([np.subtract(t, c) for c, t in rows])
+        return (float(np.sqrt(np.mean(np.sum(error[:, :2] ** 2, axis=1)))),
+                float(np.sqrt(np.mean(error[:, 2] ** 2))))
+
+
 def run_demo(plan, events_path=None, max_wall_time=None):
-    """Run the live demo; returns (events, injected_at stamp or None, start stamp or None)."""
+    """Run the live demo; returns a :class:`DemoRun` (unpacks as (events, injected_at, start))."""
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
     if plan.layout not in LAYOUT_CHOICES:
@@ -186,15 +237,20 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         nodes.append(base_node)
         nodes.append(DriverShimNode(context=context, parameter_overrides=channel))
         waits_for = ()
+        bridge_module = factories[0].__module__  # the kinematics bridge applies the reactions
         if plan.layout == 'separate':
             log_dir = tempfile.mkdtemp(prefix='youbot-fdi-demo-')
-            processes = start_node_processes(factories, log_dir)
+            processes = start_node_processes(factories, log_dir,
+                                             {bridge_module: {'react': True}} if plan.react else None)
             waits_for = [sys.modules[f.__module__].NODE_NAME for f in factories]
             if plan.console:
                 print(f'FDI nodes in {len(processes)} processes (logs: {log_dir}); waiting for '
                       f'them on the graph ...', flush=True)
         else:
-            nodes += [factory(context=context) for factory in factories]
+            react = [Parameter('react', value=True)] if plan.react else []
+            nodes += [factory(context=context, parameter_overrides=react)
+                      if factory.__module__ == bridge_module else factory(context=context)
+                      for factory in factories]
         driver = DemoDriverNode(plan, base_node.base, log, waits_for, context=context)
         nodes.append(driver)
         for node in nodes:
@@ -213,7 +269,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             executor.spin_once(timeout_sec=0.01)
         for _ in range(20):  # deliver the last fault messages
             executor.spin_once(timeout_sec=0.01)
-        return list(driver.events), driver.injected_at, driver.start
+        return DemoRun(list(driver.events), driver.injected_at, driver.start,
+                       list(driver.reactions), list(driver.tracking))
     finally:
         stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)

@@ -6,7 +6,9 @@ Topics (CONTRACT.md, driver convention): subscribes ``/wheel_commands`` (JointSt
 [rad/s] or ``effort`` [N·m], matched by joint name); publishes ``/joint_states`` (position [rad],
 velocity [rad/s], effort [N·m] from the measured current, stamped with the sample time) every
 cycle with fresh data, and ``/diagnostics`` (one status per wheel module and one for the bus).
-Services ``~/switch_on_motors`` and ``~/switch_off_motors`` (std_srvs/Trigger).
+Services ``~/switch_on_motors`` and ``~/switch_off_motors`` (std_srvs/Trigger), and per wheel
+``~/switch_off_motor_<w>`` (``<w>`` the wheel suffix, e.g. ``fl``): that wheel's motor off (TMCL
+MST, then 0 mA) until ``~/switch_on_motors``; a fault reaction of the kinematics bridge.
 A command older than ``command_timeout`` is replaced by zero speed (watchdog).
 """
 import sys
@@ -17,6 +19,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from youbot_fdi.model.profile import load_model
+from youbot_fdi.structure.generate import wheel_suffix
 from youbot_fdi.nodes.common import (declare_settings, health_to_diagnostics,
                                      now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
                                      STREAM_QOS)
@@ -45,6 +48,9 @@ class DriverShimNode(Node):
         self.create_subscription(JointState, WHEEL_COMMANDS, self.on_command, SENSOR_QOS)
         self.create_service(Trigger, '~/switch_on_motors', self.on_switch_on)
         self.create_service(Trigger, '~/switch_off_motors', self.on_switch_off)
+        for name in self.names:
+            self.create_service(Trigger, f'~/switch_off_motor_{wheel_suffix(name)}',
+                                lambda request, response, name=name: self.on_motor_off(name, response))
         self._last_stamp = None
         self._configured = False
         self.create_timer(1.0 / self.settings.cycle_rate, self.on_cycle)
@@ -109,6 +115,14 @@ class DriverShimNode(Node):
     def on_switch_off(self, _request, response):
         self.driver.motors_off()
         response.success, response.message = True, 'motors off (0 mA, coasting)'
+        return response
+
+    def on_motor_off(self, name, response):
+        reply = self.driver.motor_off(name)
+        response.success = reply is not None and reply.ok
+        response.message = (f'{name}: motor off (0 mA, coasting)' if response.success else
+                            f'{name}: 0 mA from the next cycle; the module did not confirm the stop')
+        self.get_logger().warning(response.message)
         return response
 
     def close(self):

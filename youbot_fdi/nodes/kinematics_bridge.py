@@ -3,22 +3,37 @@
 Wheel speeds are limited to ``max_wheel_speed``: a faster command is scaled down as a whole, so the
 base keeps its direction. Odometry integrates the measured wheel angles (exact SE(2) steps) and is
 published in frame ``odom`` with child ``base_footprint`` (REP-105, like the youBot driver).
+
+Fault reactions (``react: true``, policy in ``config/reactions.yaml``,
+:class:`~youbot_fdi.fdi.reactions.Reactor`): the bridge owns /wheel_commands, so it applies them.
+It listens to /youbot_fdi/faults; a runaway wheel's motor goes off through the driver shim's
+``~/switch_off_motor_<w>`` service and the base stops; stuck and comm_loss stop the base (zero
+commands at once and on every /cmd_vel); torque_loss and friction drive the base on the other
+wheels; a frozen encoder's reading is replaced by its kinematic estimate for odometry. An OK event
+(the fault cleared, or the decision's ``~/reset``) ends the wheel's reaction. Each reaction is
+published on ``/youbot_fdi/reactions`` (latched DiagnosticArray, one INFO event per status) and
+logged.
 """
 import math
 import sys
 
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry as OdometryMsg
+import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
 
+from youbot_fdi.fdi.reactions import ReactionSettings, Reactor
 from youbot_fdi.model.kinematics import Odometry
 from youbot_fdi.model.profile import load_model
-from youbot_fdi.nodes.common import (now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
-                                     stamp_to_seconds, STREAM_QOS)
-from youbot_fdi.nodes.conversions import joint_state
+from youbot_fdi.nodes.common import (declare_settings, LATCHED_QOS, now_seconds, SENSOR_QOS,
+                                     seconds_to_stamp, spin_nodes, stamp_to_seconds, STREAM_QOS)
+from youbot_fdi.nodes.conversions import event_from_status, joint_state, reaction_array
 from youbot_fdi.samples import SampleMapper
-from youbot_fdi.topics import CMD_VEL, JOINT_STATES, ODOM, WHEEL_COMMANDS
+from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, ODOM, REACTIONS, WHEEL_COMMANDS
 
 NODE_NAME = 'kinematics_bridge'
 
@@ -37,10 +52,20 @@ class KinematicsBridgeNode(Node):
         self.mapper = SampleMapper(self.model.wheel_names)
         self.odometry = Odometry(self.kinematics)
         self._last_stamp = None
+        self.reactor = Reactor(self.kinematics, declare_settings(self, ReactionSettings))
+        self._measured = None  # last measured wheel speeds, kinematic convention [rad/s]
+        self._raw_positions = None  # last measured wheel angles, kinematic convention [rad]
+        self._positions = None  # the angles odometry integrates (frozen readings substituted)
         self.command_pub = self.create_publisher(JointState, WHEEL_COMMANDS, STREAM_QOS)
         self.odom_pub = self.create_publisher(OdometryMsg, ODOM, STREAM_QOS)
         self.create_subscription(Twist, CMD_VEL, self.on_cmd_vel, 10)
         self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
+        if self.reactor.settings.react:
+            self.reaction_pub = self.create_publisher(DiagnosticArray, REACTIONS, LATCHED_QOS)
+            self.motor_off = {name: self.create_client(
+                Trigger, f'{self.reactor.settings.motor_off_service}_{wheel_suffix(name)}')
+                for name in self.model.wheel_names}
+            self.create_subscription(DiagnosticArray, FAULTS, self.on_faults, LATCHED_QOS)
 
     def on_cmd_vel(self, msg):
         twist = (msg.linear.x, msg.linear.y, msg.angular.z)
@@ -48,12 +73,32 @@ class KinematicsBridgeNode(Node):
             self.get_logger().warning(f'/cmd_vel with non-finite values ignored: {twist}',
                                       throttle_duration_sec=2.0)
             return
-        speeds = self.kinematics.inverse(twist)
+        self.publish_speeds(self.reactor.wheel_speeds(twist, self._measured))
+
+    def publish_speeds(self, speeds):
+        """/wheel_commands for wheel speeds (kinematic convention), within ``max_wheel_speed``."""
         fastest = float(max(abs(speeds)))
         if fastest > self.max_wheel_speed:
             speeds = speeds * (self.max_wheel_speed / fastest)
         self.command_pub.publish(joint_state(now_seconds(self), self.model.wheel_names,
                                              velocity=self.kinematics.to_driver(speeds)))
+
+    def on_faults(self, msg):
+        """Fault events -> reactions: published, logged, and acted on at once."""
+        reactions = []
+        for status in msg.status:
+            reactions += self.reactor.on_event(event_from_status(status))
+        if not reactions:
+            return
+        for name in self.reactor.motors_to_switch_off():
+            if any(r.wheel == name and r.action == 'motor_off' for r in reactions):
+                self.motor_off[name].call_async(Trigger.Request())
+        if self.reactor.stopped:
+            self.publish_speeds(np.zeros(len(self.model.wheel_names)))
+        self.reaction_pub.publish(reaction_array(reactions, reactions[-1].stamp))
+        for reaction in reactions:
+            self.get_logger().warning(f'reaction {reaction.action} on {reaction.wheel or "base"} '
+                                      f'({reaction.fault}): {reaction.detail}')
 
     def on_joint_states(self, msg):
         stamp = stamp_to_seconds(msg.header.stamp)
@@ -62,7 +107,14 @@ class KinematicsBridgeNode(Node):
             return
         dt = 0.0 if self._last_stamp is None else stamp - self._last_stamp
         self._last_stamp = stamp
-        pose = self.odometry.update(self.kinematics.from_driver(sample.position), dt or 1.0)
+        self._measured = self.reactor.readings(self.kinematics.from_driver(sample.velocity))
+        raw = self.kinematics.from_driver(sample.position)
+        if self._positions is None or not self.reactor.substituted:
+            self._positions = raw.copy()
+        else:  # increments, frozen readings replaced by their kinematic estimate
+            self._positions = self._positions + self.reactor.readings(raw - self._raw_positions)
+        self._raw_positions = raw
+        pose = self.odometry.update(self._positions, dt or 1.0)
         odom = OdometryMsg()
         odom.header.stamp = seconds_to_stamp(stamp)
         odom.header.frame_id, odom.child_frame_id = self.odom_frame, self.base_frame

@@ -142,6 +142,7 @@ class BaseDriver:
         self._command = np.zeros(n)
         self._command_stamp = -np.inf
         self.motors_enabled = True
+        self.motors_off_wheels = set()  # wheel indices switched off one by one (motor_off)
         self.cycle_count = 0
         self._sent_at = {}  # cycle counter -> driver-clock time its commands went out
         self._clock_offset = None  # driver clock - module clock [s], tracked slowly
@@ -175,16 +176,20 @@ class BaseDriver:
         return now - self._command_stamp > self.settings.command_timeout
 
     def _module_commands(self, now):
-        """The (mode, value) per module this cycle, in motor units."""
+        """The (mode, value) per module this cycle, in motor units (0 mA for a wheel switched
+        off)."""
         if not self.motors_enabled:
             return [(ControlMode.CURRENT, 0)] * self.n_wheels
         if self.command_is_stale(now):
-            return [(ControlMode.VELOCITY, 0)] * self.n_wheels
-        if self._command_kind is CommandKind.VELOCITY:
+            commands = [(ControlMode.VELOCITY, 0)] * self.n_wheels
+        elif self._command_kind is CommandKind.VELOCITY:
             rpm = np.rint(self.drive.wheel_speed_to_rpm(self._command)).astype(int)
-            return [(ControlMode.VELOCITY, int(v)) for v in rpm]
-        milliamps = np.rint(self.drive.torque_to_milliamps(self._command)).astype(int)
-        return [(ControlMode.CURRENT, int(v)) for v in milliamps]
+            commands = [(ControlMode.VELOCITY, int(v)) for v in rpm]
+        else:
+            milliamps = np.rint(self.drive.torque_to_milliamps(self._command)).astype(int)
+            commands = [(ControlMode.CURRENT, int(v)) for v in milliamps]
+        return [(ControlMode.CURRENT, 0) if k in self.motors_off_wheels else command
+                for k, command in enumerate(commands)]
 
     def cycle(self, now=None):
         """Send one process-data command to every module; returns how many went out."""
@@ -297,9 +302,21 @@ class BaseDriver:
         return sorted(set(failed) | set(self.clear_flags()))
 
     def motors_on(self):
-        """Enable motion commands and clear the modules' sticky flags; returns silent wheels."""
+        """Enable motion commands (every wheel) and clear the modules' sticky flags; returns
+        silent wheels."""
         self.motors_enabled = True
+        self.motors_off_wheels.clear()
         return self.clear_flags()
+
+    def motor_off(self, wheel):
+        """Switch one wheel's motor off (a fault reaction): TMCL MST over the mailbox, the path
+        that still reaches the motor when the module's cyclic set-point misbehaves (a runaway),
+        and 0 mA from the next cycle on until :meth:`motors_on`. Returns the module's reply (None:
+        no answer)."""
+        index = wheel if isinstance(wheel, int) else self.wheel_names.index(wheel)
+        with self._lock:
+            self.motors_off_wheels.add(index)
+        return self.request(index, TmclCommand.MST, 0, 0)
 
     def motors_off(self):
         """Command 0 mA in current mode from the next cycle on (the wheels coast)."""

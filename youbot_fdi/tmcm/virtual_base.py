@@ -278,6 +278,11 @@ class VirtualYoubot:
             self._set_mode(module, ControlMode.VELOCITY, -value)
         elif command == TmclCommand.MST:
             self._set_mode(module, ControlMode.MOTOR_STOP, 0)
+            # A runaway is a fault of the cyclic set-point path: a motor stop over the mailbox
+            # still reaches the motor driver and ends it (the wheel then obeys 0 mA and coasts).
+            index = self.modules.index(module)
+            if self._frozen.get(index, ('',))[0] == 'runaway':
+                del self._frozen[index]
         elif command == TmclCommand.MVP:
             if type_ not in (0, 1):
                 return TmclStatus.WRONG_TYPE, 0
