@@ -2,7 +2,7 @@
 
     ros2 launch youbot_fdi youbot_fdi.launch.py [composed:=true|false] [fused:=false|true]
         [params_file:=PARAMS.yaml] [can_interface:=socketcan] [can_channel:=can0]
-        [aggregator:=true|false]
+        [aggregator:=true|false] [react:=false|true]
 
 ``composed:=true`` (default) runs kinematics_bridge, observer, residual_generator and decision in
 one process (``youbot_fdi_suite``: a weak robot PC); ``false`` runs them as separate processes.
@@ -10,6 +10,7 @@ one process (``youbot_fdi_suite``: a weak robot PC); ``false`` runs them as sepa
 the residuals itself (the weakest PCs). ``params_file`` is a ``youbot-fdi identify`` output for
 the observer, residual generator and decision. ``aggregator:=true`` starts
 diagnostic_aggregator with config/diagnostic_aggregator.yaml (rqt_robot_monitor shows one tree).
+``react:=true`` lets the kinematics bridge apply the fault reactions of config/reactions.yaml.
 """
 import os
 
@@ -30,6 +31,8 @@ def config(name):
 def generate_launch_description():
     composed, fused = LaunchConfiguration('composed'), LaunchConfiguration('fused')
     fdi_parameters = [config('fdi.yaml'), {'params_file': LaunchConfiguration('params_file')}]
+    bridge_parameters = [config('kinematics_bridge.yaml'), config('reactions.yaml'),
+                         {'react': LaunchConfiguration('react')}]
     separate = UnlessCondition(composed)
 
     def one_process(want_fused):
@@ -46,18 +49,18 @@ def generate_launch_description():
         DeclareLaunchArgument('can_channel', default_value='can0'),
         DeclareLaunchArgument('aggregator', default_value='false',
                               description='start diagnostic_aggregator with our analyzers'),
+        DeclareLaunchArgument('react', default_value='false',
+                              description='apply the fault reactions (config/reactions.yaml)'),
         Node(package=PACKAGE, executable='driver_shim', name='driver_shim', output='screen',
              parameters=[config('driver_shim.yaml'),
                          {'can_interface': LaunchConfiguration('can_interface'),
                           'can_channel': LaunchConfiguration('can_channel')}]),
         Node(package=PACKAGE, executable='youbot_fdi_suite', output='screen',
-             parameters=[config('kinematics_bridge.yaml')] + fdi_parameters,
-             condition=one_process(False)),
+             parameters=bridge_parameters + fdi_parameters, condition=one_process(False)),
         Node(package=PACKAGE, executable='youbot_fdi_fused', output='screen',
-             parameters=[config('kinematics_bridge.yaml')] + fdi_parameters,
-             condition=one_process(True)),
+             parameters=bridge_parameters + fdi_parameters, condition=one_process(True)),
         Node(package=PACKAGE, executable='kinematics_bridge', name='kinematics_bridge',
-             output='screen', parameters=[config('kinematics_bridge.yaml')], condition=separate),
+             output='screen', parameters=bridge_parameters, condition=separate),
         Node(package=PACKAGE, executable='observer', name='observer', output='screen',
              parameters=fdi_parameters, condition=separate),
         Node(package=PACKAGE, executable='residual_generator', name='residual_generator',
