@@ -22,7 +22,8 @@ def alarms(events):
 def test_injected_fault_is_detected_and_isolated_live(tmp_path):
     plan = DemoPlan(SCRIPT.scaled_to(6.0), 'stuck', 'wheel_joint_bl', 3.0, console=False,
                     record=tmp_path / 'live')
-    events, injected_at, _ = run_demo(plan)
+    run = run_demo(plan)
+    events, injected_at = run.events, run.injected_at
     found = alarms(events)
     assert found, 'nothing detected'
     assert found[0].wheel == 'wheel_joint_bl' and found[0].fault == 'stuck'
@@ -42,7 +43,8 @@ def test_one_process_layouts_detect_the_demo_fault(layout):
     same fault on the same wheel."""
     plan = DemoPlan(SCRIPT.scaled_to(5.0), 'stuck', 'wheel_joint_fl', 2.5, console=False,
                     layout=layout)
-    events, injected_at, _ = run_demo(plan)
+    run = run_demo(plan)
+    events, injected_at = run.events, run.injected_at
     found = alarms(events)
     assert found and (found[0].wheel, found[0].fault) == ('wheel_joint_fl', 'stuck')
     assert 0.0 <= found[0].stamp - injected_at <= LIVE_DELAY
@@ -105,7 +107,8 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
 
 def test_fault_free_live_drive_raises_no_alarm():
     plan = DemoPlan(SCRIPT.scaled_to(6.0), None, 'wheel_joint_fl', 0.0, console=False)
-    events, injected_at, start = run_demo(plan)
+    run = run_demo(plan)
+    events, injected_at, start = run.events, run.injected_at, run.start
     assert injected_at is None and start is not None
     assert alarms(events) == []
 

@@ -73,7 +73,7 @@ def run(args):
     print(f'youbot-fdi demo ({args.layout} FDI nodes): {script.duration:.1f} s drive, '
           + (f'{fault} on {args.wheel} at {args.at:g} s' if fault else 'no fault injected'), flush=True)
     run = run_demo(plan, args.events)
-    events, injected_at, start = run
+    events, injected_at = run.events, run.injected_at
     alarms = [e for e in events if e.level == 'ERROR']
     print('\nsummary:')
     if fault is None:
@@ -91,7 +91,7 @@ def run(args):
         others = [e for e in alarms if e.wheel != args.wheel]
         if others:
             print(f'  other alarms: {[(e.wheel, e.fault) for e in others]}')
-    tracking = run.tracking_error(injected_at if injected_at is not None else start)
+    tracking = run.tracking_error(injected_at if injected_at is not None else run.start)
     if tracking is not None:
         span = 'after the fault' if injected_at is not None else 'over the drive'
         print(f'  RMS tracking error {span}: {tracking[0]:.3f} m/s, {tracking[1]:.3f} rad/s')

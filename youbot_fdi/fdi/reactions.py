@@ -14,7 +14,8 @@ import numpy as np
 
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.faults import FaultKind
-from youbot_fdi.model.allocation import Allocation, AllocationError, substitute_readings
+from youbot_fdi.model.allocation import Allocation, AllocationError
+from youbot_fdi.model.kinematics import limit_wheel_speeds
 
 MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE = 'motor_off', 'stop', 'degrade', 'substitute', 'none'
 ACTIONS = (MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE)
@@ -87,8 +88,8 @@ class Reactor:
         self.settings = settings
         self.names = list(kinematics.platform.names)
         self._active = {}  # component (wheel or None) -> (fault, action)
-        self._allocation = None
-        self._replaced = ()
+        #: action -> the Allocation without its wheels (DEGRADE: driving, SUBSTITUTE: readings)
+        self._around = {DEGRADE: None, SUBSTITUTE: None}
 
     # ------------------------------------------------------------------ state
     @property
@@ -96,44 +97,39 @@ class Reactor:
         """True while a reaction holds the base still."""
         return any(action in (STOP, MOTOR_OFF) for _, action in self._active.values())
 
+    def _lost(self, action):
+        allocation = self._around[action]
+        return [self.names[k] for k in (allocation.lost if allocation else ())]
+
     @property
     def degraded(self):
         """Wheel names driven around (degraded driving), in wheel order."""
-        return [self.names[k] for k in (self._allocation.lost if self._allocation else ())]
+        return self._lost(DEGRADE)
 
     @property
     def substituted(self):
         """Wheel names whose reading is replaced by its kinematic estimate."""
-        return [self.names[k] for k in self._replaced]
+        return self._lost(SUBSTITUTE)
 
     def _wheels(self, action):
         return sorted((self.names.index(w) for w, (_, a) in self._active.items()
                        if a == action and w in self.names))
 
     def _rebuild(self, stamp):
-        """The allocation and substitution of the reactions in force; a layout that loses rank
-        turns degraded driving into a stop (a Reaction saying so)."""
+        """The allocations of the reactions in force (built once here, not per sample); a layout
+        that loses rank turns degraded driving or substitution into a stop (a Reaction saying so)."""
         notes = []
-        lost = self._wheels(DEGRADE)
-        try:
-            self._allocation = Allocation.for_lost(self.kinematics.jacobian, lost, self.names) if lost else None
-        except AllocationError as err:
-            self._allocation = None
-            for wheel in (self.names[k] for k in lost):
-                fault = self._active[wheel][0]
-                self._active[wheel] = (fault, STOP)
-                notes.append(Reaction(stamp, STOP, wheel, fault, str(err)))
-        replaced = self._wheels(SUBSTITUTE)
-        try:
-            if replaced:
-                Allocation.for_lost(self.kinematics.jacobian, replaced, self.names)
-            self._replaced = tuple(replaced)
-        except AllocationError as err:
-            self._replaced = ()
-            for wheel in (self.names[k] for k in replaced):
-                fault = self._active[wheel][0]
-                self._active[wheel] = (fault, STOP)
-                notes.append(Reaction(stamp, STOP, wheel, fault, str(err)))
+        for action in self._around:
+            wheels = self._wheels(action)
+            try:
+                self._around[action] = (Allocation.for_lost(self.kinematics.jacobian, wheels, self.names)
+                                        if wheels else None)
+            except AllocationError as err:
+                self._around[action] = None
+                for wheel in (self.names[k] for k in wheels):
+                    fault = self._active[wheel][0]
+                    self._active[wheel] = (fault, STOP)
+                    notes.append(Reaction(stamp, STOP, wheel, fault, str(err)))
         return notes
 
     def on_event(self, event):
@@ -151,10 +147,8 @@ class Reactor:
                                       f'replaced by the reaction to {event.fault}'))
         if event.level == 'ERROR':
             action = self.settings.action(event.fault)
-            if action == MOTOR_OFF and component is None:
-                action = STOP
-            if action in (DEGRADE, SUBSTITUTE) and component is None:
-                action = STOP
+            if component is None and action in (MOTOR_OFF, DEGRADE, SUBSTITUTE):
+                action = STOP  # a fault of the whole base: nothing to do per wheel
             if action != NONE:
                 self._active[component] = (event.fault, action)
                 reactions.append(Reaction(event.stamp, action, component, event.fault,
@@ -169,20 +163,20 @@ class Reactor:
         a whole so that no wheel exceeds ``degraded_max_wheel_speed``."""
         if self.stopped:
             return np.zeros(len(self.names))
-        if self._allocation is None:
+        allocation = self._around[DEGRADE]
+        if allocation is None:
             return self.kinematics.inverse(twist)
-        lost = None if measured is None else np.asarray(measured, float)[list(self._allocation.lost)]
-        speeds = self._allocation.wheel_speeds(np.asarray(twist, dtype=float), lost)
-        fastest = float(np.max(np.abs(speeds)))
-        cap = self.settings.degraded_max_wheel_speed
-        return speeds * (cap / fastest) if fastest > cap else speeds
+        lost = None if measured is None else np.asarray(measured, float)[list(allocation.lost)]
+        return limit_wheel_speeds(allocation.wheel_speeds(np.asarray(twist, dtype=float), lost),
+                                  self.settings.degraded_max_wheel_speed)
 
     def readings(self, speeds):
         """Measured wheel speeds (n,) with the substituted wheels replaced by their kinematic
         estimate from the others (for odometry and control)."""
-        if not self._replaced:
+        allocation = self._around[SUBSTITUTE]
+        if allocation is None:
             return np.asarray(speeds, dtype=float)
-        return substitute_readings(self.kinematics.jacobian, speeds, self._replaced)
+        return allocation.substitute(speeds)
 
     def motors_to_switch_off(self):
         """Wheel names whose motor a reaction wants off."""

@@ -460,10 +460,6 @@ class ResidualGenerator:
         """The learned torque correction in use, None: physics only."""
         return self.observer.correction
 
-    def bound(self, family, features):
-        """The bound [residual units] of ``family`` from its features (..., n, k)."""
-        return self.evaluator.bound(family, features)
-
     def command(self, sample):
         """Take a /wheel_commands sample (:class:`~youbot_fdi.samples.CommandSample`)."""
         self.observer.command(sample)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from youbot_fdi.errors import FdiError
-from youbot_fdi.model.kinematics import RANK_TOLERANCE
+from youbot_fdi.model.kinematics import determines_twist
 
 TWIST_DOF = 3  # v_x, v_y, w_z
 
@@ -35,6 +35,7 @@ class Allocation:
     healthy: tuple
     solve: np.ndarray  # (len(healthy), 3): w_h = solve @ (t* - F_l w_l)
     forward_lost: np.ndarray  # (3, len(lost)): F_l
+    estimate_lost: np.ndarray  # (len(lost), len(healthy)): w_l = J_l pinv(J_h) w_h
 
     @classmethod
     def for_lost(cls, jacobian, lost, wheel_names=None):
@@ -46,14 +47,13 @@ class Allocation:
         healthy = tuple(k for k in range(n) if k not in lost)
         names = wheel_names or [str(k) for k in range(n)]
         rows = jacobian[list(healthy)]
-        singular = np.linalg.svd(rows, compute_uv=False) if len(rows) else np.zeros(1)
-        if len(rows) < TWIST_DOF or singular[min(TWIST_DOF, len(singular)) - 1] <= RANK_TOLERANCE * singular[0]:
+        if not determines_twist(rows):
             msg = (f'without {", ".join(names[k] for k in lost)} the other wheels do not determine '
                    f'the base twist (rank < {TWIST_DOF}): no degraded driving')
             raise AllocationError(msg)
         forward = np.linalg.pinv(jacobian)
         return cls(jacobian, lost, healthy, np.linalg.pinv(forward[:, list(healthy)]),
-                   forward[:, list(lost)])
+                   forward[:, list(lost)], jacobian[list(lost)] @ np.linalg.pinv(rows))
 
     def wheel_speeds(self, twist, lost_speeds=None):
         """Wheel speeds (n,) [rad/s]: the healthy ones solved for ``twist`` (3,) given the lost
@@ -69,14 +69,17 @@ class Allocation:
         return speeds
 
 
+    def substitute(self, speeds):
+        """Wheel speeds (n,) (or increments) with the lost wheels' values replaced by their
+        estimate from the others: the least-squares twist of the others mapped back through the
+        Jacobian (a frozen encoder's reading for odometry and control)."""
+        speeds = np.asarray(speeds, dtype=float).copy()
+        if self.lost:
+            speeds[list(self.lost)] = self.estimate_lost @ speeds[list(self.healthy)]
+        return speeds
+
+
 def substitute_readings(jacobian, speeds, replaced):
-    """Wheel speeds (n,) with the wheels ``replaced`` (indices) estimated from the others: the
-    least-squares twist of the others mapped back through ``jacobian`` (a frozen encoder's reading
-    for odometry and control). AllocationError when the others lose rank."""
-    allocation = Allocation.for_lost(jacobian, replaced)
-    speeds = np.asarray(speeds, dtype=float).copy()
-    if allocation.lost:
-        others = list(allocation.healthy)
-        twist = np.linalg.pinv(allocation.jacobian[others]) @ speeds[others]
-        speeds[list(allocation.lost)] = allocation.jacobian[list(allocation.lost)] @ twist
-    return speeds
+    """:meth:`Allocation.substitute` of the wheels ``replaced`` (indices) in one call;
+    AllocationError when the others lose rank."""
+    return Allocation.for_lost(jacobian, replaced).substitute(speeds)

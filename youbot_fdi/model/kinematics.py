@@ -25,6 +25,23 @@ RANK_TOLERANCE = 1e-9
 SMALL_ANGLE = 1e-6
 
 
+def determines_twist(jacobian):
+    """True when wheel-speed rows ``jacobian`` (m, 3) determine the base twist: rank 3, within
+    :data:`RANK_TOLERANCE` of the largest singular value."""
+    jacobian = np.asarray(jacobian, dtype=float)
+    if len(jacobian) < 3:
+        return False
+    singular = np.linalg.svd(jacobian, compute_uv=False)
+    return bool(singular[-1] > RANK_TOLERANCE * singular[0])
+
+
+def limit_wheel_speeds(speeds, limit):
+    """Wheel speeds (n,) scaled down as a whole so that none exceeds ``limit`` [rad/s] (the base
+    keeps its direction)."""
+    fastest = float(np.max(np.abs(speeds)))
+    return speeds * (limit / fastest) if fastest > limit else speeds
+
+
 def _as_rows(values, width, name):
     """Return ``values`` as a float64 array of shape (k, width) and whether it was 1-D."""
     array = np.asarray(values, dtype=float)
@@ -60,8 +77,8 @@ class Kinematics:
             rows.append((sin_d / scale, -cos_d / scale,
                          (-wheel.y * sin_d - wheel.x * cos_d) / scale))
         self.jacobian = np.array(rows)
-        singular = np.linalg.svd(self.jacobian, compute_uv=False)
-        if singular[-1] <= RANK_TOLERANCE * singular[0]:
+        if not determines_twist(self.jacobian):
+            singular = np.linalg.svd(self.jacobian, compute_uv=False)
             msg = (f'the wheel layout of {platform.names} does not determine the base twist '
                    f'(Jacobian rank < 3, singular values {singular})')
             raise ModelError(msg)

@@ -26,9 +26,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.nodes.common import (SENSOR_QOS, shutdown_nodes, stamp_to_seconds,
-                                     stop_node_processes, STREAM_QOS)
-from youbot_fdi.nodes.composed import LAYOUTS
+from youbot_fdi.nodes.common import (keep_discovery_local, SENSOR_QOS, shutdown_nodes,
+                                     stamp_to_seconds, stop_node_processes, STREAM_QOS)
+from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
@@ -184,7 +184,7 @@ def bench_layout(layout, processes, executor_kind, samples, names, seconds, tmp)
     count = len(factories)
     arrangement = relay_arrangement(count)
     relay_names = [f'bench_relay_{k}' for k in range(count)]
-    fdi_names = [sys.modules[getattr(f, 'func', f).__module__].NODE_NAME for f in factories]
+    fdi_names = [node_name(f) for f in factories]
     if not processes:
         fdi = _run(list(factories[:-1]) + [TimedDecision], [], fdi_names, samples, names, seconds,
                    executor_kind)
@@ -193,7 +193,7 @@ def bench_layout(layout, processes, executor_kind, samples, names, seconds, tmp)
                      executor_kind)
         return fdi, relay
     fdi_timings, relay_timings = Path(tmp) / f'{layout}-fdi.json', Path(tmp) / f'{layout}-relay.json'
-    fdi_commands = ([[sys.executable, '-m', getattr(f, 'func', f).__module__] for f in factories[:-1]]
+    fdi_commands = ([[sys.executable, '-m', node_module(f)] for f in factories[:-1]]
                     + [_worker_command('decision', fdi_timings)])
     relay_commands = [_worker_command('relay', relay_timings if k == count - 1 else None, *st, index=k)
                       for k, st in enumerate(arrangement)]
@@ -211,8 +211,7 @@ def bench_node_suite(seconds=5.0, progress=None):
     from youbot_fdi.model.scenario import DriveScript, Segment
     from youbot_fdi.tmcm.recordings import record_drive
 
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
+    keep_discovery_local()
     model = load_model('youbot')
     names = model.wheel_names
     script = DriveScript((Segment('forward', (0.3, 0.0, 0.0), 2.0), Segment('turn', (0.1, 0.2, 0.8), 2.0)))

@@ -24,6 +24,14 @@ NAME_PREFIX = 'youbot_fdi'
 INPUT_WARN_INTERVAL = 1.0  # [s] between input-problem WARNs on /diagnostics (rate limit)
 
 
+def keep_discovery_local():
+    """ROS 2 discovery on this machine only, in a per-process domain, unless the caller's
+    environment says otherwise (Fast DDS multicasts off every interface by default)."""
+    import os
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
+
+
 def declare_settings(node, cls, runtime=()):
     """Declare one ROS parameter per dataclass field (default = field default); return settings.
 

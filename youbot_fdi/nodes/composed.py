@@ -25,6 +25,17 @@ LAYOUTS = {
 FDI_NODES = LAYOUTS['separate']
 
 
+def node_module(factory):
+    """The module of a node factory (a Node class or a partial of one): ``python -m`` runs it as
+    its own process."""
+    return getattr(factory, 'func', factory).__module__
+
+
+def node_name(factory):
+    """The ROS node name a factory's node takes (its module's ``NODE_NAME``)."""
+    return sys.modules[node_module(factory)].NODE_NAME
+
+
 def sim_main(args=None):
     """Virtual youBot + driver shim in one process."""
     return spin_nodes([VirtualYoubotNode, DriverShimNode], args=args)

@@ -42,7 +42,6 @@ class DecisionNode(Node):
                                                          self.model.wheel_names))
         self.events = []
         self._last_stamp = None
-        self._last_arrival = None
         self.faults_pub = self.create_publisher(DiagnosticArray, FAULTS, LATCHED_QOS)
         self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
         self.create_subscription(JointState, RESIDUALS, self.on_residuals, SENSOR_QOS)
@@ -59,7 +58,7 @@ class DecisionNode(Node):
         except ValueError as err:
             self.get_logger().warning(f'residual vector ignored: {err}', throttle_duration_sec=2.0)
             return
-        self._last_stamp, self._last_arrival = stamp, now_seconds(self)
+        self._last_stamp = stamp
         self.stall_timer.reset()
         self.emit(self.decision.data_resumed(stamp) + self.decision.update(frame))
 
@@ -75,7 +74,7 @@ class DecisionNode(Node):
 
     def check_stall(self):
         """No residual for ``data_timeout`` (the timer ran out): comm_loss of the base."""
-        if self._last_arrival is not None:
+        if self._last_stamp is not None:
             self.emit(self.decision.data_stalled(self._last_stamp))
 
     def emit(self, events):

@@ -29,9 +29,9 @@ from sensor_msgs.msg import JointState
 import rclpy
 
 from youbot_fdi.fdi.eventlog import EventLog
-from youbot_fdi.nodes.common import (LATCHED_QOS, now_seconds, SENSOR_QOS, shutdown_nodes,
-                                     stop_node_processes)
-from youbot_fdi.nodes.composed import LAYOUTS
+from youbot_fdi.nodes.common import (keep_discovery_local, LATCHED_QOS, now_seconds, SENSOR_QOS,
+                                     shutdown_nodes, stop_node_processes)
+from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
 from youbot_fdi.nodes.conversions import event_from_status, reaction_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
@@ -182,7 +182,7 @@ def start_node_processes(factories, log_dir, parameters=None):
     ``--ros-args -p``; returns the Popen objects."""
     processes = []
     for factory in factories:
-        module = factory.__module__
+        module = node_module(factory)
         overrides = (parameters or {}).get(module, {})
         arguments = ['--ros-args'] + [a for name, value in overrides.items()
                                       for a in ('-p', f'{name}:={str(value).lower()}')] if overrides else []
@@ -204,9 +204,6 @@ class DemoRun:
     reactions: list
     tracking: list
 
-    def __iter__(self):  # (events, injected_at, start), as callers unpack it
-        return iter((self.events, self.injected_at, self.start))
-
     def tracking_error(self, since):
         """RMS body-velocity tracking error from ``since`` [s] to the end: (linear [m/s],
         angular [rad/s]), against the simulator's true velocity; None without samples."""
@@ -219,9 +216,8 @@ class DemoRun:
 
 
 def run_demo(plan, events_path=None, max_wall_time=None):
-    """Run the live demo; returns a :class:`DemoRun` (unpacks as (events, injected_at, start))."""
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
+    """Run the live demo; returns a :class:`DemoRun`."""
+    keep_discovery_local()
     if plan.layout not in LAYOUT_CHOICES:
         msg = f'unknown layout {plan.layout!r}; choose one of {", ".join(LAYOUT_CHOICES)}'
         raise ValueError(msg)
@@ -237,19 +233,19 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         nodes.append(base_node)
         nodes.append(DriverShimNode(context=context, parameter_overrides=channel))
         waits_for = ()
-        bridge_module = factories[0].__module__  # the kinematics bridge applies the reactions
+        bridge_module = node_module(factories[0])  # the kinematics bridge applies the reactions
         if plan.layout == 'separate':
             log_dir = tempfile.mkdtemp(prefix='youbot-fdi-demo-')
             processes = start_node_processes(factories, log_dir,
                                              {bridge_module: {'react': True}} if plan.react else None)
-            waits_for = [sys.modules[f.__module__].NODE_NAME for f in factories]
+            waits_for = [node_name(f) for f in factories]
             if plan.console:
                 print(f'FDI nodes in {len(processes)} processes (logs: {log_dir}); waiting for '
                       f'them on the graph ...', flush=True)
         else:
             react = [Parameter('react', value=True)] if plan.react else []
             nodes += [factory(context=context, parameter_overrides=react)
-                      if factory.__module__ == bridge_module else factory(context=context)
+                      if node_module(factory) == bridge_module else factory(context=context)
                       for factory in factories]
         driver = DemoDriverNode(plan, base_node.base, log, waits_for, context=context)
         nodes.append(driver)

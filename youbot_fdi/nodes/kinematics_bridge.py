@@ -25,8 +25,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from youbot_fdi.fdi.reactions import ReactionSettings, Reactor
-from youbot_fdi.model.kinematics import Odometry
+from youbot_fdi.fdi.reactions import MOTOR_OFF, ReactionSettings, Reactor
+from youbot_fdi.model.kinematics import limit_wheel_speeds, Odometry
 from youbot_fdi.model.profile import load_model
 from youbot_fdi.nodes.common import (declare_settings, LATCHED_QOS, now_seconds, SENSOR_QOS,
                                      seconds_to_stamp, spin_nodes, stamp_to_seconds, STREAM_QOS)
@@ -77,9 +77,7 @@ class KinematicsBridgeNode(Node):
 
     def publish_speeds(self, speeds):
         """/wheel_commands for wheel speeds (kinematic convention), within ``max_wheel_speed``."""
-        fastest = float(max(abs(speeds)))
-        if fastest > self.max_wheel_speed:
-            speeds = speeds * (self.max_wheel_speed / fastest)
+        speeds = limit_wheel_speeds(speeds, self.max_wheel_speed)
         self.command_pub.publish(joint_state(now_seconds(self), self.model.wheel_names,
                                              velocity=self.kinematics.to_driver(speeds)))
 
@@ -90,9 +88,9 @@ class KinematicsBridgeNode(Node):
             reactions += self.reactor.on_event(event_from_status(status))
         if not reactions:
             return
-        for name in self.reactor.motors_to_switch_off():
-            if any(r.wheel == name and r.action == 'motor_off' for r in reactions):
-                self.motor_off[name].call_async(Trigger.Request())
+        for reaction in reactions:  # the motors a reaction switches off now
+            if reaction.action == MOTOR_OFF:
+                self.motor_off[reaction.wheel].call_async(Trigger.Request())
         if self.reactor.stopped:
             self.publish_speeds(np.zeros(len(self.model.wheel_names)))
         self.reaction_pub.publish(reaction_array(reactions, reactions[-1].stamp))
