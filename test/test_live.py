@@ -114,12 +114,13 @@ def test_fault_free_live_drive_raises_no_alarm():
 
 
 REACTIONS = {'runaway': 'motor_off', 'stuck': 'stop', 'torque_loss': 'degrade',
-             'encoder_freeze': 'substitute'}
+             'encoder_freeze': 'substitute', 'friction': 'degrade', 'comm_loss': 'stop'}
 
 
 @pytest.mark.parametrize('fault, wheel', [('runaway', 'wheel_joint_br'), ('stuck', 'wheel_joint_fl'),
                                           ('torque_loss', 'wheel_joint_bl'),
-                                          ('encoder_freeze', 'wheel_joint_fr')])
+                                          ('encoder_freeze', 'wheel_joint_fr'),
+                                          ('friction', 'wheel_joint_bl'), ('comm_loss', 'wheel_joint_fl')])
 def test_reactions_act_through_the_topics(fault, wheel, monkeypatch):
     """demo --react (issue 15): the reaction is an INFO event of the right action and wheel; a
     runaway motor's stop frame is on the bus within 100 ms of the fault event; a stopped base
@@ -147,9 +148,26 @@ def test_reactions_act_through_the_topics(fault, wheel, monkeypatch):
     assert (reaction.level, reaction.wheel) == ('INFO', wheel)
     assert reaction.stamp == pytest.approx(error.stamp, abs=1e-6)  # the events file rounds to 1 µs
     names = list(SCRIPT_NAMES)
-    if fault == 'runaway':
+    if fault in ('runaway', 'encoder_freeze'):  # a frozen reading's motor goes off too
         assert [index for _, index in stops] == [names.index(wheel)]
         assert stops[0][0] - error.stamp <= 0.1
     if fault in ('runaway', 'stuck'):
         settled = [true for stamp, _, true in run.tracking if stamp > error.stamp + 1.0]
         assert settled and max(abs(v) for v in settled[-1]) < 0.05  # the base is at rest
+
+
+def test_demo_plan_carries_fault_magnitudes_and_bridge_limits():
+    """demo --torque-loss-gain/--friction-factor reach the virtual base, --max-wheel-speed the
+    bridge (with --react); a magnitude no base can have is refused."""
+    import argparse
+    from youbot_fdi.cli.demo import plan_fault_settings
+    from youbot_fdi.errors import ConfigError
+    from youbot_fdi.tmcm.virtual_base import VirtualBaseSettings
+    args = argparse.Namespace(torque_loss_gain=0.0, friction_factor=None)
+    assert plan_fault_settings(args) == {'torque_loss_gain': 0.0}
+    plan = DemoPlan(SCRIPT, 'friction', 'wheel_joint_fl', 1.0, react=True,
+                    bridge_overrides=(('max_wheel_speed', 20.0),))
+    assert plan.bridge_parameters() == {'max_wheel_speed': 20.0, 'react': True}
+    assert DemoPlan(SCRIPT, None, 'wheel_joint_fl', 1.0).bridge_parameters() == {}
+    with pytest.raises(ConfigError, match='torque_loss_gain'):
+        VirtualBaseSettings(torque_loss_gain=1.5).validate()

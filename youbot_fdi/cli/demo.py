@@ -32,6 +32,15 @@ def add_parser(subparsers):
                         help='as --composed, the observer computing the residuals itself '
                              '(youbot_fdi_fused)')
     parser.set_defaults(layout='separate')
+    parser.add_argument('--torque-loss-gain', type=float, metavar='G',
+                        help='delivered over commanded torque under torque_loss (default: '
+                             'config/virtual_youbot.yaml, 0.3; 0 is a dead motor)')
+    parser.add_argument('--friction-factor', type=float, metavar='F',
+                        help='viscous friction multiplier under friction (default: '
+                             'config/virtual_youbot.yaml, 6)')
+    parser.add_argument('--max-wheel-speed', type=float, metavar='W',
+                        help="the kinematics bridge's wheel-speed limit, degraded driving's too "
+                             '[rad/s] (default: config/kinematics_bridge.yaml, 10, the URDF limit)')
     parser.add_argument('--react', action='store_true',
                         help='the kinematics bridge applies the fault reactions of '
                              'config/reactions.yaml (motor off, stop, degraded driving, '
@@ -51,7 +60,8 @@ def write_summary(path, args, run, alarms, tracking):
     first = next((e for e in alarms if run.injected_at is not None and e.stamp >= run.injected_at), None)
     summary = {
         'fault': args.fault, 'wheel': args.wheel, 'at': args.at, 'layout': args.layout,
-        'react': args.react,
+        'react': args.react, 'fault_settings': plan_fault_settings(args),
+        'max_wheel_speed': args.max_wheel_speed,
         'detected': first is not None and first.wheel == args.wheel,
         'detection_delay_s': None if first is None else round(first.stamp - run.injected_at, 4),
         'alarms': [e.to_dict() for e in alarms],
@@ -63,13 +73,23 @@ def write_summary(path, args, run, alarms, tracking):
     Path(path).write_text(json.dumps(summary, indent=2) + '\n')
 
 
+def plan_fault_settings(args):
+    """The virtual base's fault magnitudes the command line overrides (name -> value)."""
+    chosen = {'torque_loss_gain': args.torque_loss_gain, 'friction_factor': args.friction_factor}
+    return {name: value for name, value in chosen.items() if value is not None}
+
+
 def run(args):
     from youbot_fdi.model.scenario import load_script
     from youbot_fdi.nodes.demo import DemoPlan, run_demo
     _, script = load_script(args.script, args.duration)
     fault = None if args.fault == NONE else args.fault
     plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record,
-                    layout=args.layout, react=args.react)
+                    layout=args.layout, react=args.react,
+                    base_overrides=tuple(plan_fault_settings(args).items()),
+                    bridge_overrides=() if args.max_wheel_speed is None else (
+                        ('max_wheel_speed', args.max_wheel_speed),
+                        ('degraded_max_wheel_speed', args.max_wheel_speed)))
     print(f'youbot-fdi demo ({args.layout} FDI nodes): {script.duration:.1f} s drive, '
           + (f'{fault} on {args.wheel} at {args.at:g} s' if fault else 'no fault injected'), flush=True)
     run = run_demo(plan, args.events)

@@ -3,12 +3,13 @@ import argparse
 import sys
 
 from youbot_fdi import __version__
-from youbot_fdi.cli import (bench, demo, echo, fleet, identify, model_info, play, record, replay, simulate,
-                            structure)
+from youbot_fdi.cli import (bench, controllers, demo, echo, fleet, identify, model_info, play, record,
+                            replay, simulate, structure)
 from youbot_fdi.cli.status import ERROR, INTERRUPTED
 from youbot_fdi.errors import FdiError
 
-COMMANDS = (demo, identify, replay, fleet, record, play, echo, simulate, structure, model_info, bench)
+COMMANDS = (demo, identify, replay, fleet, record, play, echo, simulate, controllers, structure,
+            model_info, bench)
 
 
 def build_parser():

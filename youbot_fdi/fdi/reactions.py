@@ -20,6 +20,9 @@ from youbot_fdi.model.kinematics import limit_wheel_speeds
 MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE = 'motor_off', 'stop', 'degrade', 'substitute', 'none'
 ACTIONS = (MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE)
 INFO = 'INFO'
+#: Actions that switch the wheel's motor off: a runaway, and a frozen encoder (the module's own
+#: velocity loop runs on the frozen reading and would drive the wheel to its current limit).
+SWITCHES_OFF = (MOTOR_OFF, SUBSTITUTE)
 
 
 @dataclass(frozen=True)
@@ -34,7 +37,7 @@ class ReactionSettings:
     on_friction: str = DEGRADE
     on_encoder_freeze: str = SUBSTITUTE
     on_unknown: str = STOP
-    degraded_max_wheel_speed: float = 8.0  # wheel-speed cap while driving degraded [rad/s]
+    degraded_max_wheel_speed: float = 10.0  # wheel-speed cap while driving degraded [rad/s]
     motor_off_service: str = '/driver_shim/switch_off_motor'  # + '_<wheel suffix>'
 
     def validate(self, source='<settings>'):
@@ -112,8 +115,11 @@ class Reactor:
         return self._lost(SUBSTITUTE)
 
     def _wheels(self, action):
+        """Wheel indices the allocation of ``action`` leaves out: a substituted wheel is driven
+        around too (its firmware loop runs on the frozen reading, so its motor is off)."""
+        actions = (DEGRADE, SUBSTITUTE) if action == DEGRADE else (action,)
         return sorted((self.names.index(w) for w, (_, a) in self._active.items()
-                       if a == action and w in self.names))
+                       if a in actions and w in self.names))
 
     def _rebuild(self, stamp):
         """The allocations of the reactions in force (built once here, not per sample); a layout
@@ -180,12 +186,13 @@ class Reactor:
 
     def motors_to_switch_off(self):
         """Wheel names whose motor a reaction wants off."""
-        return [w for w, (_, a) in self._active.items() if a == MOTOR_OFF and w is not None]
+        return [w for w, (_, a) in self._active.items() if a in SWITCHES_OFF and w is not None]
 
 
 _DETAILS = {
     MOTOR_OFF: 'motor off through the driver shim; base stopped',
     STOP: 'base stopped (zero wheel commands) until the fault clears or decision ~/reset',
     DEGRADE: 'degraded driving: the other wheels carry the base (wheel speeds up to {cap:g} rad/s)',
-    SUBSTITUTE: 'reading replaced by its kinematic estimate from the other wheels',
+    SUBSTITUTE: 'reading replaced by its kinematic estimate from the other wheels; motor off '
+                '(its loop runs on the frozen reading), the other wheels carry the base',
 }

@@ -57,6 +57,12 @@ class DemoPlan:
     record: object = None  # a new rosbag2 directory for /joint_states and /wheel_commands
     layout: str = 'separate'  # one of LAYOUT_CHOICES
     react: bool = False  # the kinematics bridge applies the fault reactions (config/reactions.yaml)
+    base_overrides: tuple = ()  # (name, value) of VirtualBaseSettings, e.g. fault magnitudes
+    bridge_overrides: tuple = ()  # (name, value) parameters of the kinematics bridge
+
+    def bridge_parameters(self):
+        """The kinematics bridge's parameter overrides {name: value} (``react`` included)."""
+        return {**dict(self.bridge_overrides), **({'react': True} if self.react else {})}
 
 
 class DemoDriverNode(Node):
@@ -176,6 +182,13 @@ class DemoDriverNode(Node):
             self.say(f'[{t:6.2f} s] *** {event.level} {event.wheel or "base"}: {event.fault}{note}')
 
 
+#: ``python -c`` start of a node process on Linux: SIGTERM when the demo dies, even by SIGKILL
+#: (prctl PR_SET_PDEATHSIG = 1), so no node outlives it on the ROS graph; then the node's module.
+_END_WITH_PARENT = ('import ctypes, runpy, signal, sys; ctypes.CDLL(None).prctl(1, signal.SIGTERM); '
+                    "sys.argv = sys.argv[1:]; runpy.run_module(sys.argv[0], run_name='__main__', "
+                    'alter_sys=True)')
+
+
 def start_node_processes(factories, log_dir, parameters=None):
     """Each FDI node as its own process (``python -m <its module>``, as ``ros2 run`` starts it),
     output to ``log_dir/<module>.log``, with ``parameters`` {module: {name: value}} as
@@ -187,7 +200,8 @@ def start_node_processes(factories, log_dir, parameters=None):
         arguments = ['--ros-args'] + [a for name, value in overrides.items()
                                       for a in ('-p', f'{name}:={str(value).lower()}')] if overrides else []
         log = open(Path(log_dir) / f'{module.rsplit(".", 1)[-1]}.log', 'w')  # noqa: SIM115
-        processes.append(subprocess.Popen([sys.executable, '-m', module, *arguments], stdout=log,
+        start = ['-c', _END_WITH_PARENT] if sys.platform == 'linux' else ['-m']
+        processes.append(subprocess.Popen([sys.executable, *start, module, *arguments], stdout=log,
                                           stderr=subprocess.STDOUT, env=dict(os.environ)))
         log.close()
     return processes
@@ -229,7 +243,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
     nodes, processes = [], []
     log = EventLog(events_path) if events_path else None
     try:
-        base_node = VirtualYoubotNode(context=context, parameter_overrides=channel)
+        base_node = VirtualYoubotNode(context=context, parameter_overrides=channel + [
+            Parameter(name, value=value) for name, value in plan.base_overrides])
         nodes.append(base_node)
         nodes.append(DriverShimNode(context=context, parameter_overrides=channel))
         waits_for = ()
@@ -237,14 +252,14 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         if plan.layout == 'separate':
             log_dir = tempfile.mkdtemp(prefix='youbot-fdi-demo-')
             processes = start_node_processes(factories, log_dir,
-                                             {bridge_module: {'react': True}} if plan.react else None)
+                                             {bridge_module: plan.bridge_parameters()})
             waits_for = [node_name(f) for f in factories]
             if plan.console:
                 print(f'FDI nodes in {len(processes)} processes (logs: {log_dir}); waiting for '
                       f'them on the graph ...', flush=True)
         else:
-            react = [Parameter('react', value=True)] if plan.react else []
-            nodes += [factory(context=context, parameter_overrides=react)
+            bridge = [Parameter(name, value=value) for name, value in plan.bridge_parameters().items()]
+            nodes += [factory(context=context, parameter_overrides=bridge)
                       if node_module(factory) == bridge_module else factory(context=context)
                       for factory in factories]
         driver = DemoDriverNode(plan, base_node.base, log, waits_for, context=context)

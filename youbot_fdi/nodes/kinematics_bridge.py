@@ -9,7 +9,8 @@ Fault reactions (``react: true``, policy in ``config/reactions.yaml``,
 It listens to /youbot_fdi/faults; a runaway wheel's motor goes off through the driver shim's
 ``~/switch_off_motor_<w>`` service and the base stops; stuck and comm_loss stop the base (zero
 commands at once and on every /cmd_vel); torque_loss and friction drive the base on the other
-wheels; a frozen encoder's reading is replaced by its kinematic estimate for odometry. An OK event
+wheels; a frozen encoder's reading is replaced by its kinematic estimate for odometry and degraded
+driving, and its motor goes off (the module's loop runs on the frozen reading). An OK event
 (the fault cleared, or the decision's ``~/reset``) ends the wheel's reaction. Each reaction is
 published on ``/youbot_fdi/reactions`` (latched DiagnosticArray, one INFO event per status) and
 logged.
@@ -25,7 +26,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from youbot_fdi.fdi.reactions import MOTOR_OFF, ReactionSettings, Reactor
+from youbot_fdi.fdi.reactions import ReactionSettings, Reactor, SWITCHES_OFF
 from youbot_fdi.model.kinematics import limit_wheel_speeds, Odometry
 from youbot_fdi.model.profile import load_model
 from youbot_fdi.nodes.common import (declare_settings, LATCHED_QOS, now_seconds, SENSOR_QOS,
@@ -54,6 +55,7 @@ class KinematicsBridgeNode(Node):
         self._last_stamp = None
         self.reactor = Reactor(self.kinematics, declare_settings(self, ReactionSettings))
         self._measured = None  # last measured wheel speeds, kinematic convention [rad/s]
+        self._twist = None  # last /cmd_vel set-point (vx, vy, wz)
         self._raw_positions = None  # last measured wheel angles, kinematic convention [rad]
         self._positions = None  # the angles odometry integrates (frozen readings substituted)
         self.command_pub = self.create_publisher(JointState, WHEEL_COMMANDS, STREAM_QOS)
@@ -73,6 +75,7 @@ class KinematicsBridgeNode(Node):
             self.get_logger().warning(f'/cmd_vel with non-finite values ignored: {twist}',
                                       throttle_duration_sec=2.0)
             return
+        self._twist = twist
         self.publish_speeds(self.reactor.wheel_speeds(twist, self._measured))
 
     def publish_speeds(self, speeds):
@@ -89,7 +92,7 @@ class KinematicsBridgeNode(Node):
         if not reactions:
             return
         for reaction in reactions:  # the motors a reaction switches off now
-            if reaction.action == MOTOR_OFF:
+            if reaction.action in SWITCHES_OFF:
                 self.motor_off[reaction.wheel].call_async(Trigger.Request())
         if self.reactor.stopped:
             self.publish_speeds(np.zeros(len(self.model.wheel_names)))
@@ -106,6 +109,9 @@ class KinematicsBridgeNode(Node):
         dt = 0.0 if self._last_stamp is None else stamp - self._last_stamp
         self._last_stamp = stamp
         self._measured = self.reactor.readings(self.kinematics.from_driver(sample.velocity))
+        if self.reactor.degraded and self._twist is not None and not self.reactor.stopped:
+            # degraded driving follows the lost wheels' speeds at the sample rate, not /cmd_vel's
+            self.publish_speeds(self.reactor.wheel_speeds(self._twist, self._measured))
         raw = self.kinematics.from_driver(sample.position)
         if self._positions is None or not self.reactor.substituted:
             self._positions = raw.copy()

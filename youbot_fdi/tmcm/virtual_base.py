@@ -87,6 +87,8 @@ class VirtualBaseSettings:
         for name in ('controller_timeout', 'current_noise', 'velocity_noise', 'measurement_delay'):
             if getattr(self, name) < 0:
                 problems.append(f'{name} must be >= 0')
+        if not 0.0 <= self.torque_loss_gain <= 1.0:
+            problems.append('torque_loss_gain must be in [0, 1]')
         for name in ('nominal_current', 'thermal_time_constant', 'position_gain', 'realtime_step',
                      'friction_factor', 'stuck_friction'):
             if getattr(self, name) <= 0:
