@@ -106,7 +106,10 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
 
 
 def test_fault_free_live_drive_raises_no_alarm():
-    plan = DemoPlan(SCRIPT.scaled_to(6.0), None, 'wheel_joint_fl', 0.0, console=False)
+    # composed: five processes on two cores under pytest can stall /joint_states past the 0.2 s
+    # comm timeout (a real, separate problem, docs/nodes.md); this test is about false alarms
+    plan = DemoPlan(SCRIPT.scaled_to(6.0), None, 'wheel_joint_fl', 0.0, console=False,
+                    layout='composed')
     run = run_demo(plan)
     events, injected_at, start = run.events, run.injected_at, run.start
     assert injected_at is None and start is not None
