@@ -93,3 +93,11 @@ def test_the_report_loop_cannot_mix_modes_and_says_so():
     assert nominal.ran and nominal.tracking_error()[0] < 0.05
     unseen = run_drive(seed, SHORT, FIRMWARE_PI, 'friction', fault_at=0.5)  # no friction in that loop
     assert not unseen.ran and 'does not model friction' in unseen.note
+
+
+def test_tracking_rms_is_planar_speed_error_and_yaw_error():
+    from youbot_fdi.model.kinematics import tracking_rms
+    commanded = [[0.3, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    actual = [[0.0, 0.4, 0.0], [0.0, 0.0, 0.0]]  # 0.5 m/s off, then 1 rad/s off
+    linear, angular = tracking_rms(commanded, actual)
+    assert linear == pytest.approx(np.sqrt(0.25 / 2)) and angular == pytest.approx(np.sqrt(0.5))

@@ -8,6 +8,7 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import FaultEvent
 from youbot_fdi.fdi.reactions import ReactionSettings, Reactor
 from youbot_fdi.model.allocation import Allocation, AllocationError, substitute_readings
+from youbot_fdi.model.kinematics import tracking_rms
 from youbot_fdi.model.profile import load_model
 from youbot_fdi.settings import load_settings
 
@@ -130,7 +131,7 @@ def _degraded_drive(kinematics_model, fault, react, cap, **magnitudes):
     kinematics = kinematics_model.kinematics
     script = DriveScript.from_config([{'name': 'forward', 'vx': 0.3, 'duration': 2.5}])
     reactor = Reactor(kinematics, ReactionSettings(react=True, degraded_max_wheel_speed=cap))
-    cycle, errors, measured = 0.01, [], None
+    cycle, commanded, actual, measured = 0.01, [], [], None
     with LockstepBase(kinematics_model, cycle, **magnitudes) as rig:
         for k in range(int(script.duration / cycle)):
             t = k * cycle
@@ -142,9 +143,9 @@ def _degraded_drive(kinematics_model, fault, react, cap, **magnitudes):
             sample = rig.step('velocity', kinematics.to_driver(reactor.wheel_speeds(twist, measured)))
             measured = reactor.readings(kinematics.from_driver(sample.velocity))
             if k >= 50:
-                true = kinematics.forward(kinematics.from_driver(rig.base.wheel_state()[1]))
-                errors.append(np.hypot(*(true - twist)[:2]))
-    return float(np.sqrt(np.mean(np.square(errors))))
+                commanded.append(twist)
+                actual.append(kinematics.forward(kinematics.from_driver(rig.base.wheel_state()[1])))
+    return tracking_rms(commanded, actual)[0]
 
 
 @pytest.mark.parametrize('fault, magnitudes', [('torque_loss', {'torque_loss_gain': 0.0}),

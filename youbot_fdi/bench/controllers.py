@@ -18,9 +18,10 @@ import numpy as np
 
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ModelError
-from youbot_fdi.model.firmware import LoopKind
 from youbot_fdi.faults import FaultKind, INJECTABLE
 from youbot_fdi.model.control import ModelBasedController, ModelBasedSettings
+from youbot_fdi.model.firmware import LoopKind
+from youbot_fdi.model.kinematics import tracking_rms
 from youbot_fdi.settings import load_settings
 from youbot_fdi.tmcm.lockstep import LockstepBase
 
@@ -32,6 +33,7 @@ CONTROL_CONFIG = 'control.yaml'
 SETTINGS_NAME = 'model_based_controller'
 DRIVES = ('demo.yaml', 'aggressive.yaml')
 PROFILES = ('youbot', 'seed')
+FAULTS = (None, *(k.value for k in INJECTABLE))  # None: the fault-free drive
 FAULT_WHEEL = 'wheel_joint_fl'
 FAULT_AT_FRACTION = 0.4  # the fault goes in this far into the drive
 CYCLE = 0.01  # process-data cycle [s], as the driver shim's default 100 Hz
@@ -70,9 +72,8 @@ class ControlRun:
 
     def tracking_error(self):
         """RMS tracking error (linear [m/s], angular [rad/s]) over the drive, or from the fault."""
-        error = (self.true - self.commanded)[self._since()]
-        return (float(np.sqrt(np.mean(np.sum(error[:, :2] ** 2, axis=1)))),
-                float(np.sqrt(np.mean(error[:, 2] ** 2))))
+        since = self._since()
+        return tracking_rms(self.commanded[since], self.true[since])
 
     def peak_current(self):
         """Largest measured motor current [A] of any wheel."""
@@ -97,16 +98,16 @@ def run_drive(model, script, controller, fault=None, wheel=FAULT_WHEEL, fault_at
     times = np.arange(steps) * CYCLE
     twists = script.twists(times)
     onset = (FAULT_AT_FRACTION * script.duration if fault_at is None else fault_at) if fault else math.nan
+    empty = dict(time=np.zeros(0), commanded=np.zeros((0, 3)), true=np.zeros((0, 3)),
+                 current=np.zeros((0, kinematics.n_wheels)))
+    if (controller == FIRMWARE_PI and fault in UNSEEN_BY_CONTINUOUS_LOOP
+            and model.firmware.loop == LoopKind.CONTINUOUS):
+        note = f"the report's continuous velocity loop does not model {fault}"
+        return ControlRun(controller, profile, drive, fault, fault_at=onset, note=note, **empty)
     host = (ModelBasedController(model, CYCLE, settings or load_controller_settings())
             if controller == MODEL_BASED else None)
     measured = np.zeros(kinematics.n_wheels)
     true, current = np.zeros((steps, 3)), np.zeros((steps, kinematics.n_wheels))
-    empty = dict(time=np.zeros(0), commanded=np.zeros((0, 3)), true=np.zeros((0, 3)),
-                 current=np.zeros((0, kinematics.n_wheels)))
-    if (host is None and fault in UNSEEN_BY_CONTINUOUS_LOOP
-            and model.firmware.loop == LoopKind.CONTINUOUS):
-        note = f"the report's continuous velocity loop does not model {fault}"
-        return ControlRun(controller, profile, drive, fault, fault_at=onset, note=note, **empty)
     with LockstepBase(model, CYCLE) as rig:
         try:
             for k in range(steps):
@@ -126,8 +127,7 @@ def run_drive(model, script, controller, fault=None, wheel=FAULT_WHEEL, fault_at
     return ControlRun(controller, profile, drive, fault, times, twists, true, current, onset)
 
 
-def compare(profiles=PROFILES, drives=DRIVES, faults=(None, *(k.value for k in INJECTABLE)),
-            progress=None, settings=None):
+def compare(profiles=PROFILES, drives=DRIVES, faults=FAULTS, progress=None, settings=None):
     """Every (profile, drive, fault, controller) run; a list of :class:`ControlRun`."""
     from youbot_fdi.model.profile import load_model
     from youbot_fdi.model.scenario import load_script

@@ -16,7 +16,7 @@ def add_parser(subparsers):
                     'mode: inverse-dynamics feedforward plus feedback on the model, '
                     'config/control.yaml), without a fault and with each fault on wheel_joint_fl. '
                     'Prints the table (RMS tracking error against the true body velocity, peak and '
-                    'RMS current), writes it as Markdown and a figure. About 3 minutes on 2 cores.')
+                    'RMS current), writes it as Markdown and a figure. About 80 s on 2 cores.')
     parser.add_argument('--profiles', default='youbot,seed',
                         help='parameter profiles, comma-separated (default: youbot,seed)')
     parser.add_argument('--drives', default='demo.yaml,aggressive.yaml',
@@ -29,10 +29,9 @@ def add_parser(subparsers):
 
 
 def run(args):
-    from youbot_fdi.bench.controllers import compare, format_table, plot
-    from youbot_fdi.faults import INJECTABLE
+    from youbot_fdi.bench.controllers import compare, FAULTS, format_table, plot
     split = lambda text: tuple(v.strip() for v in text.split(',') if v.strip())  # noqa: E731
-    faults = (None,) if args.no_faults else (None, *(k.value for k in INJECTABLE))
+    faults = (None,) if args.no_faults else FAULTS
     runs = compare(split(args.profiles), split(args.drives), faults,
                    progress=lambda text: print(text, file=sys.stderr, flush=True))
     table = format_table(runs)

@@ -42,6 +42,14 @@ def limit_wheel_speeds(speeds, limit):
     return speeds * (limit / fastest) if fastest > limit else speeds
 
 
+def tracking_rms(commanded, actual):
+    """RMS body-velocity tracking error of twists (k, 3) (vx, vy, wz): (linear [m/s], the RMS
+    of the planar speed error; angular [rad/s])."""
+    error = np.asarray(actual, dtype=float) - np.asarray(commanded, dtype=float)
+    return (float(np.sqrt(np.mean(np.sum(error[:, :2] ** 2, axis=1)))),
+            float(np.sqrt(np.mean(error[:, 2] ** 2))))
+
+
 def _as_rows(values, width, name):
     """Return ``values`` as a float64 array of shape (k, width) and whether it was 1-D."""
     array = np.asarray(values, dtype=float)

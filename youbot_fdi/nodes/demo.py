@@ -20,7 +20,6 @@ import uuid
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Twist
-import numpy as np
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -29,6 +28,7 @@ from sensor_msgs.msg import JointState
 import rclpy
 
 from youbot_fdi.fdi.eventlog import EventLog
+from youbot_fdi.model.kinematics import tracking_rms
 from youbot_fdi.nodes.common import (keep_discovery_local, LATCHED_QOS, now_seconds, SENSOR_QOS,
                                      shutdown_nodes, stop_node_processes)
 from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
@@ -224,9 +224,8 @@ class DemoRun:
         rows = [(c, t) for stamp, c, t in self.tracking if stamp >= since]
         if not rows:
             return None
-        error = np.array([np.subtract(t, c) for c, t in rows])
-        return (float(np.sqrt(np.mean(np.sum(error[:, :2] ** 2, axis=1)))),
-                float(np.sqrt(np.mean(error[:, 2] ** 2))))
+        commanded, actual = zip(*rows)
+        return tracking_rms(commanded, actual)
 
 
 def run_demo(plan, events_path=None, max_wall_time=None):
