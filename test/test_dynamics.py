@@ -108,3 +108,62 @@ def test_current_torque_and_motor_units_round_trip():
         assert drive.wheel_speed_to_rpm(drive.rpm_to_wheel_speed(value)) == pytest.approx(value)
     with pytest.raises(ValueError, match='dt'):
         zoh_discretize(np.zeros((2, 2)), np.zeros((2, 1)), 0.0)
+
+
+# ---------------------------------------------------------------------- the contact friction law
+def _with_ratio(model, ratio):
+    from dataclasses import replace
+    from youbot_fdi.model.profile import PlatformModel
+    dynamics = replace(model.profile.dynamics, roller_friction_ratio=ratio)
+    return PlatformModel(replace(model.profile, dynamics=dynamics))
+
+
+def test_roller_slide_is_zero_for_a_rolling_contact_and_grows_with_its_angle():
+    """Robotino (omni, rollers at 90°): driving along wheel 2's rolling direction (y) its contact
+    only rolls; wheels 1 and 3 meet that motion at 30° from their axles, so they slide
+    tan(60°) times as fast as they turn."""
+    kinematics = load_model('robotino').kinematics
+    speeds = kinematics.inverse([0.0, 0.1, 0.0])
+    slide = kinematics.roller_slide(speeds)
+    assert abs(slide[1]) < 1e-12
+    assert np.allclose(np.abs(slide[[0, 2]]) / np.abs(speeds[[0, 2]]), np.tan(np.radians(60.0)))
+
+
+def test_contact_law_reduces_to_per_wheel_coulomb_without_a_ratio_and_shares_it_with_one():
+    base = load_model('robotino')
+    speeds = base.kinematics.inverse([0.1, 0.05, 0.2])
+    per_wheel = base.dynamics.coulomb * np.tanh(speeds / base.dynamics.parameters.coulomb_velocity_scale)
+    assert np.array_equal(base.dynamics.coulomb_torque(speeds), per_wheel)
+    contact = _with_ratio(base, 1.0).dynamics
+    # k = 1: isotropic contact friction, the motor feels the rolling share of the contact speed
+    slide = base.kinematics.roller_slide(speeds)
+    share = np.abs(speeds) / np.hypot(speeds, slide)
+    assert np.allclose(contact.coulomb_torque(speeds), per_wheel * share)
+    batch = np.stack([speeds, 2.0 * speeds, np.zeros(3)])
+    assert np.allclose(contact.coulomb_torque(batch)[1], per_wheel * share * np.tanh(
+        2 * speeds / 0.2) / np.tanh(speeds / 0.2))
+    assert np.array_equal(contact.coulomb_torque(batch)[2], np.zeros(3))
+
+
+@pytest.mark.parametrize('ratio', [0.0, 0.5])
+def test_identify_finds_the_roller_friction_ratio_of_a_drive(ratio):
+    """Torques made by the contact law with ratio k on a drive in six directions: the fit's grid
+    returns k (and 0 for per-wheel Coulomb friction)."""
+    from dataclasses import replace
+    from youbot_fdi.fdi.identify import fit_dynamics, RecordingArrays
+    from youbot_fdi.model.profile import PlatformModel
+    base = load_model('robotino')
+    signed = PlatformModel(replace(base.profile, drive=replace(base.drive, signed_effort=True)))
+    truth = _with_ratio(signed, ratio)
+    dt, segment = 0.01, 200
+    ramp = np.minimum(1.0, np.minimum(np.arange(segment), segment - 1 - np.arange(segment)) / 50.0)[:, None]
+    speeds = np.concatenate([ramp * truth.kinematics.inverse([0.2 * np.cos(a), 0.2 * np.sin(a), 0.3 * np.sin(3 * a)])
+                             for a in np.radians(np.arange(0, 360, 60) + 10)])
+    acceleration = np.gradient(speeds, dt, axis=0)
+    dyn = truth.dynamics
+    torque = acceleration @ dyn.mass_matrix.T + speeds @ dyn.friction_matrix.T + dyn.coulomb_torque(speeds)
+    time = dt * np.arange(len(speeds))
+    arrays = RecordingArrays(time, np.cumsum(speeds, axis=0) * dt, speeds, torque, [])
+    params, info, _ = fit_dynamics(arrays, signed)
+    assert params.roller_friction_ratio == pytest.approx(ratio)
+    assert info['roller_friction_ratio'] == pytest.approx(ratio)

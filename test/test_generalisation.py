@@ -241,6 +241,37 @@ def test_real_robotino_runs_convert_and_a_frozen_encoder_is_found(tmp_path):
     assert 0.0 <= alarms[0].stamp - (start + run.time[onset] - run.time[0]) <= 0.3
 
 
+@needs_data
+def test_the_contact_law_explains_real_omni_wheel_currents_better(tmp_path, monkeypatch):
+    """Real Robotino currents depend on the direction the contact moves, not on the wheel's speed
+    alone: identified on green runs at 0° and 90° at every speed, the contact law (roller_friction_ratio > 0) is
+    chosen, and on held-out green runs in other directions (15°, 45°, 75° at 0.2 m/s) its torque
+    residual is smaller than per-wheel Coulomb friction's, fitted on the same recording."""
+    from youbot_fdi.fdi import identify as identification
+    from youbot_fdi.model.profile import load_profile, PlatformModel
+    from youbot_fdi.settings import load_settings
+    root, model = robotino.data_dir(), load_model(robotino.PROFILE)
+    green = root / 'green_surface'
+    robotino.write_recording([robotino.read_run(green / f'exp{nn:02d}.csv') for nn in (0, 18, 72, 90, 144, 162)],
+                             tmp_path / 'cal', model)
+    robotino.write_recording([robotino.read_run(green / f'exp{nn:02d}.csv') for nn in (75, 81, 87)],
+                             tmp_path / 'held_out', model)
+    settings = load_settings(FdiSettings, 'fdi')
+
+    def held_out_rms(ratios):
+        monkeypatch.setattr(identification, 'ROLLER_RATIOS', ratios)
+        result = identification.identify(tmp_path / 'cal', model, settings, fit_gains=False, learn=False)
+        fitted = PlatformModel(result.profile)
+        arrays = identification.read_arrays(tmp_path / 'held_out', fitted)
+        torque = identification.run_generator(fitted, arrays, settings).values['torque']
+        return result.profile.dynamics.roller_friction_ratio, float(np.sqrt(np.nanmean(torque ** 2)))
+
+    ratio, contact = held_out_rms(identification.ROLLER_RATIOS)
+    _, per_wheel = held_out_rms(np.array([0.0]))
+    assert ratio > 0.0
+    assert contact < 0.85 * per_wheel
+
+
 def test_unsigned_effort_is_signed_by_the_explained_torque(model):
     """A profile whose effort is a magnitude: the generator signs it, so a braking wheel's torque
     is negative as it is physically."""

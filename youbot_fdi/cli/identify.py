@@ -49,7 +49,9 @@ def run(args):
     print(f'  mass {dyn.mass:.3g} kg, J_z {dyn.yaw_inertia:.3g} kg·m², J_w {dyn.wheel_inertia[0]:.3g} kg·m²'
           f'  (torque fit R² {result.info["torque_fit_r_squared"]:.4f})')
     print('  viscous friction D [N·m·s/rad]: ' + ', '.join(f'{v:.4f}' for v in dyn.viscous_friction))
-    print('  Coulomb friction [N·m]: ' + ', '.join(f'{v:.4f}' for v in dyn.coulomb_friction))
+    print('  Coulomb friction [N·m]: ' + ', '.join(f'{v:.4f}' for v in dyn.coulomb_friction)
+          + (f'; contact law, roller friction ratio {dyn.roller_friction_ratio:g}'
+             if dyn.roller_friction_ratio > 0 else '; per wheel (no contact law)'))
     print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
           f'ki {profile.firmware.velocity_ki:.3g} A/rad')
     if 'input_delay' in result.fdi:

@@ -1,7 +1,9 @@
 """Identify the model's parameters from a nominal recording (either control mode).
 
-1. **Dynamics by linear least squares.** ``tau = M(m, J_z, J_w) a + D w + F_c tanh(w / v_s)`` is
-   linear in (m, J_z, J_w, D_i, F_c,i) because M = m P_xy + J_z P_z + J_w I. Speeds are
+1. **Dynamics by linear least squares.** ``tau = M(m, J_z, J_w) a + D w + F_c tanh(w / v_s) s_k`` is
+   linear in (m, J_z, J_w, D_i, F_c,i) because M = m P_xy + J_z P_z + J_w I; the contact law's
+   rolling share s_k (model/dynamics.py, ``roller_friction_ratio`` k) is searched on a grid, a
+   linear fit each. Speeds are
    differentiated and torques smoothed with the same Savitzky-Golay filter; parameters are bounded
    (>= 0) and pulled gently towards the prior profile where the drive does not excite them (a drive
    without rotation says nothing about J_z).
@@ -37,6 +39,7 @@ from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.learned import fit_torque_correction
 from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.model.dynamics import rolling_share
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
 from youbot_fdi.samples import CommandBatch, JointBatch
 from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
@@ -53,6 +56,10 @@ QUANTILE_ROWS = 20000  # rows the quantile regression uses at most (a random, se
 MIN_INTEGRAL_SHARE = 0.05  # a P-only prior starts the gain fit at ki = this x kp [1/s]
 SIGN_REFITS = 3  # fits of a magnitude-only effort, each signed by the previous fit
 GAIN_DELAY_ROUNDS = 2  # alternations of the PI-gain fit and the input-delay search
+#: Roller friction ratios the dynamics fit tries (model/dynamics.py, the contact law) [-] ...
+ROLLER_RATIOS = np.round(np.arange(0.0, 1.51, 0.125), 3)
+#: ... and keeps one above 0 only where it lowers the torque fit's squared error by this share.
+ROLLER_RATIO_MIN_GAIN = 0.05
 
 
 class IdentificationError(FdiError):
@@ -99,8 +106,10 @@ def _smooth(values, dt, deriv=0):
 
 
 def fit_dynamics(arrays, model):
-    """Least-squares (m, J_z, J_w, D, F_c); returns (DynamicParameters, fit info dict, fitted
-    torques)."""
+    """Least-squares (m, J_z, J_w, D, F_c), and the contact law's roller friction ratio k on the
+    grid :data:`ROLLER_RATIOS` (each k a linear fit; k > 0 kept only where it lowers the torque
+    fit's squared error by :data:`ROLLER_RATIO_MIN_GAIN`); returns (DynamicParameters, fit info
+    dict, fitted torques)."""
     if not np.all(np.isfinite(arrays.torque)):
         msg = 'the recording has no effort (measured current) on every sample; it is needed'
         raise IdentificationError(msg)
@@ -110,22 +119,48 @@ def fit_dynamics(arrays, model):
     forward = model.kinematics.forward_matrix
     p_xy = forward.T @ np.diag([1.0, 1.0, 0.0]) @ forward
     p_z = forward.T @ np.diag([0.0, 0.0, 1.0]) @ forward
-    k, n = speed.shape
-    scale = model.dynamics.parameters.coulomb_velocity_scale
-    columns = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
-    for law in (speed, np.tanh(speed / scale)):
-        for j in range(n):
-            mask = np.zeros((k, n))
-            mask[:, j] = 1.0
-            columns.append((law * mask).ravel())
-    design = np.column_stack(columns)
+    sign = np.tanh(speed / model.dynamics.parameters.coulomb_velocity_scale)
+    slide = model.kinematics.roller_slide(speed)
+    inertial = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
+    fits = []
+    for ratio in ROLLER_RATIOS:
+        coulomb = sign * rolling_share(speed, slide, ratio) if ratio > 0.0 else sign
+        design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb))
+        params, info, fitted, error = _fit_signed(design, torque, model)
+        ratio = float(ratio)
+        fits.append((error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted))
+    physics = fits[0]
+    best = min(fits, key=lambda fit: fit[0])
+    chosen = best if best[0] < (1.0 - ROLLER_RATIO_MIN_GAIN) * physics[0] else physics
+    return chosen[2], {**chosen[3], 'roller_friction_ratio': chosen[1]}, chosen[4]
+
+
+def _per_wheel_columns(law):
+    """Design columns of a per-wheel term: wheel j's column is ``law[:, j]`` on its own rows."""
+    k, n = law.shape
+    out = []
+    for j in range(n):
+        mask = np.zeros((k, n))
+        mask[:, j] = 1.0
+        out.append((law * mask).ravel())
+    return out
+
+
+def _fit_signed(design, torque, model):
+    """:func:`_solve_dynamics` of ``torque`` (k, n); a magnitude-only effort is signed by the
+    friction first, then by each fit's explained torque. Returns (params, info, fitted, squared
+    error)."""
+    n = torque.shape[1]
     if model.drive.signed_effort:
-        return _solve_dynamics(design, torque.ravel(), model, n)
-    signs = np.sign(speed).ravel()  # friction first; then the sign of each fit's explained torque
-    for _ in range(SIGN_REFITS):
-        params, info, fitted = _solve_dynamics(design, np.abs(torque).ravel() * signs, model, n)
-        signs = np.sign(fitted)
-    return params, info, fitted
+        target = torque.ravel()
+        params, info, fitted = _solve_dynamics(design, target, model, n)
+    else:
+        signs = np.sign(design[:, 3 + 2 * n:].sum(axis=1))  # the speed's sign (Coulomb columns)
+        for _ in range(SIGN_REFITS):
+            target = np.abs(torque).ravel() * signs
+            params, info, fitted = _solve_dynamics(design, target, model, n)
+            signs = np.sign(fitted)
+    return params, info, fitted, float(np.sum((target - fitted) ** 2))
 
 
 def _solve_dynamics(design, target, model, n):

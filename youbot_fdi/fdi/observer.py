@@ -18,7 +18,8 @@ Inputs are what the robot publishes (CONTRACT.md, driver convention): /joint_sta
     mode, the effort the command implies [N·m] in current mode.
 ``explained``, ``friction``
     the torque the exactly discretised dynamics need for the measured speed change over the
-    interval (with the learned correction, if any) and its friction part [N·m].
+    interval (with the learned correction, if any) and the wheel's friction level (its friction
+    part, with a contact law as if the contact only rolled: what the load condition scales) [N·m].
 ``load_factor``
     the platform-wide friction/load condition (1: as identified), slow and bounded.
 
@@ -159,6 +160,7 @@ class ModelObserver:
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
+        self._coulomb_scale = dyn.parameters.coulomb_velocity_scale
         learned = (model.profile.learned or {}).get('torque')
         #: the learned torque correction (youbot_fdi.fdi.learned), None: physics only
         self.correction = (None if learned is None or settings.physics_only else
@@ -193,6 +195,17 @@ class ModelObserver:
         keys, inverse = np.unique(np.round(dt, DT_KEY_DECIMALS), return_inverse=True)
         stacked = [np.stack(m) for m in zip(*(self._discrete(key) for key in keys))]
         return tuple(m[inverse] for m in stacked)
+
+    def _friction_level(self, velocity, coulomb):
+        """The Coulomb part of a wheel's friction level [N·m]: its Coulomb torque as if its contact
+        only rolled (``coulomb`` itself without the contact law, model/dynamics.py). The load
+        condition scales it and the torque bound weighs it: how much of it a sliding contact
+        spares the motor is what a calibration on one floor knows least (the Robotino: the slow
+        wheel of a diagonal needs up to 1.7 times the current on another covering, the fast
+        ones 0.9 to 1.4 times)."""
+        if self.model.dynamics.parameters.roller_friction_ratio <= 0.0:
+            return coulomb
+        return self.model.dynamics.coulomb * np.tanh(velocity / self._coulomb_scale)
 
     def _coulomb(self, velocity):
         if not self._has_coulomb:
@@ -366,12 +379,14 @@ class ModelObserver:
     # ------------------------------------------------------------------ the model's torque
     # Shapes (n,) for one sample or (N, n) for a block.
     def _explained(self, velocity, prev_velocity, phi, gamma_inv):
-        """(explained torque, its physics friction part, Coulomb torque) over one interval: the
+        """(explained torque, the wheel's friction level, Coulomb torque) over one interval: the
         torque the exactly discretised dynamics need for the measured speed change, with the
-        learned correction (if any) in the explained and Coulomb torques only."""
+        learned correction (if any) in the explained and Coulomb torques only; the friction
+        level is viscous plus :meth:`_friction_level` (the physics friction without the contact
+        law's share)."""
         mean_speed = 0.5 * (velocity + prev_velocity)
         coulomb = self._coulomb(mean_speed)
-        friction = self.friction * mean_speed + coulomb
+        friction = self.friction * mean_speed + self._friction_level(mean_speed, coulomb)
         if self.correction is not None:  # learned friction the physics misses (see fdi/learned.py)
             coulomb = coulomb + self.correction(mean_speed)
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb

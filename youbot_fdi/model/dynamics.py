@@ -39,6 +39,18 @@ class DynamicParameters:
     viscous_friction: tuple  # D [N·m·s/rad] per wheel
     coulomb_friction: tuple  # F_c [N·m] per wheel
     coulomb_velocity_scale: float  # v_s [rad/s]: tanh smoothing width of the Coulomb term
+    #: k [-]: how much the contact's slide along the rollers widens that smoothing (see
+    #: :meth:`WheelDynamics.coulomb_torque`); 0: per-wheel Coulomb friction (the report's model)
+    roller_friction_ratio: float = 0.0
+
+
+def rolling_share(speed, slide, ratio):
+    """The share [0, 1] of a contact's Coulomb friction the wheel's motor feels, ``|w| / sqrt(w² +
+    (k u)²)``, for wheel speeds ``speed`` and roller slides ``slide`` [wheel rad/s] (same shape)
+    and the roller friction ratio k; 0 where the contact stands."""
+    speed = np.abs(speed)
+    norm = np.sqrt(speed ** 2 + (ratio * np.asarray(slide, dtype=float)) ** 2)
+    return np.divide(speed, norm, out=np.zeros_like(norm), where=norm > 0.0)
 
 
 def mass_matrix(forward_matrix, mass, yaw_inertia, wheel_inertia):
@@ -112,6 +124,9 @@ class WheelDynamics:
         self.friction_matrix = np.diag(np.asarray(parameters.viscous_friction, dtype=float))
         self.coulomb = np.asarray(parameters.coulomb_friction, dtype=float)
         self.mass_inverse = np.linalg.inv(self.mass_matrix)
+        #: wheel speeds -> roller slide [wheel rad/s], (n, n); None without the contact law
+        self._slide = (kinematics.roller_jacobian @ kinematics.forward_matrix
+                       if parameters.roller_friction_ratio > 0.0 else None)
 
     def state_space(self, friction_matrix=None):
         """Continuous state space of eq. 3.22.
@@ -131,9 +146,26 @@ class WheelDynamics:
         return a_matrix, b_matrix
 
     def coulomb_torque(self, velocity):
-        """Smoothed Coulomb friction torque [N·m] opposing ``velocity`` [rad/s], shape (..., n)."""
-        scale = self.parameters.coulomb_velocity_scale
-        return self.coulomb * np.tanh(np.asarray(velocity, dtype=float) / scale)
+        """Smoothed Coulomb friction torque [N·m] opposing ``velocity`` [rad/s], shape (..., n)::
+
+            F_c tanh(w / v_s) |w| / sqrt(w² + (k u)²)
+
+        with u the contact point's slide along the rollers [wheel rad/s]
+        (:meth:`~youbot_fdi.model.kinematics.Kinematics.roller_slide`) and k
+        ``roller_friction_ratio``. With k = 0 it is per-wheel Coulomb friction (the report's model).
+        With k > 0 it is the contact law of omni and mecanum wheels on a real floor: Coulomb
+        friction at the contact point with an elliptic limit (maximum dissipation), k the ratio of
+        the friction along the rollers to that along the rolling direction; the motor feels the
+        rolling component, which depends on the direction the contact moves, not on the wheel's
+        speed alone. A wheel turning slowly while its contact slides sideways needs only part of
+        its Coulomb torque (the Robotino's currents follow this at every speed; docs/fdi.md).
+        """
+        velocity = np.asarray(velocity, dtype=float)
+        torque = self.coulomb * np.tanh(velocity / self.parameters.coulomb_velocity_scale)
+        if self._slide is None:
+            return torque
+        return torque * rolling_share(velocity, velocity @ self._slide.T,
+                                      self.parameters.roller_friction_ratio)
 
     def acceleration(self, velocity, torque):
         """Wheel accelerations [rad/s²] for wheel speeds [rad/s] and torques [N·m], shape (..., n)."""

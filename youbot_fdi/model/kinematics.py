@@ -61,6 +61,18 @@ def _as_rows(values, width, name):
     return array, single
 
 
+def _roller_row(wheel):
+    """The row of :attr:`Kinematics.roller_jacobian` for ``wheel``: the contact point moves with
+    ``v_c = r theta_dot h + u s`` (h the heading, s the roller direction), so the roller-borne part
+    is ``u = s . v_c - r theta_dot cos(gamma)``; per twist, over r."""
+    direction = wheel.heading + wheel.roller_angle
+    sin_d, cos_d = math.sin(direction), math.cos(direction)
+    slide = np.array([cos_d, sin_d, wheel.x * sin_d - wheel.y * cos_d]) / wheel.radius
+    scale = wheel.radius * math.sin(wheel.roller_angle)
+    driven = np.array([sin_d, -cos_d, -wheel.y * sin_d - wheel.x * cos_d]) / scale
+    return slide - math.cos(wheel.roller_angle) * driven
+
+
 class Kinematics:
     """Wheel-speed <-> base-twist mapping of a :class:`~youbot_fdi.model.geometry.Platform`.
 
@@ -71,6 +83,9 @@ class Kinematics:
         w_z [rad/s])``.
     forward_matrix : ndarray, shape (3, n)
         Least-squares inverse of ``jacobian`` (report eq. 3.11 for the youBot).
+    roller_jacobian : ndarray, shape (n, 3)
+        Speed at which each wheel's contact point slides along its rollers, per base twist, in
+        wheel radians per second (the slide speed [m/s] over the wheel radius).
     drive_signs : ndarray, shape (n,)
         Kinematic-to-driver sign per wheel.
     """
@@ -85,6 +100,7 @@ class Kinematics:
             rows.append((sin_d / scale, -cos_d / scale,
                          (-wheel.y * sin_d - wheel.x * cos_d) / scale))
         self.jacobian = np.array(rows)
+        self.roller_jacobian = np.array([_roller_row(wheel) for wheel in platform.wheels])
         if not determines_twist(self.jacobian):
             singular = np.linalg.svd(self.jacobian, compute_uv=False)
             msg = (f'the wheel layout of {platform.names} does not determine the base twist '
@@ -138,6 +154,13 @@ class Kinematics:
     def from_driver(self, wheel_values):
         """Convert per-wheel values from the driver to the kinematic convention (same shape)."""
         return np.asarray(wheel_values, dtype=float) * self.drive_signs
+
+    def roller_slide(self, wheel_speeds):
+        """How fast each contact point slides along its rollers [wheel rad/s] (the slide speed
+        [m/s] over the radius) while the base moves as the wheel speeds say (least squares), shape
+        as the input. Zero for a wheel whose contact only rolls; equal to the wheel speed in size
+        for an omni wheel whose contact moves at 45° to its rolling direction."""
+        return np.asarray(wheel_speeds, dtype=float) @ (self.roller_jacobian @ self.forward_matrix).T
 
     def slip_residual(self, wheel_speeds):
         """Part of the wheel speeds no rigid base motion explains [rad/s], shape as the input.
