@@ -248,7 +248,7 @@ def test_the_contact_law_explains_real_omni_wheel_currents_better(tmp_path, monk
     chosen, and on held-out green runs in other directions (15°, 45°, 75° at 0.2 m/s) its torque
     residual is smaller than per-wheel Coulomb friction's, fitted on the same recording."""
     from youbot_fdi.fdi import identify as identification
-    from youbot_fdi.model.profile import load_profile, PlatformModel
+    from youbot_fdi.model.profile import PlatformModel
     from youbot_fdi.settings import load_settings
     root, model = robotino.data_dir(), load_model(robotino.PROFILE)
     green = root / 'green_surface'

@@ -393,9 +393,11 @@ class ModelObserver:
         return explained, friction, coulomb
 
     def _load_votes(self, mean_torque, explained, friction):
-        """Per wheel, (load part: measured minus inertial torque, friction part), zero where the
-        wheel does not vote on the load factor (friction torque under the torque floor or under
-        the inertial torque, effort unknown)."""
+        """Per wheel, (load part: measured minus inertial torque, friction level), zero where the
+        wheel does not vote on the load factor (friction level under the torque floor or under
+        the inertial torque, effort unknown). With the contact law the "inertial" part is the
+        explained torque less the friction level, so the load part is the level plus what the
+        model does not explain: its ratio to the level is 1 on the calibrated floor."""
         inertial = explained - friction
         load_part = mean_torque - inertial
         # Only in near-steady driving: where inertia dominates, the model's error does too.
