@@ -126,7 +126,7 @@ def fit_dynamics(arrays, model):
     for ratio in ROLLER_RATIOS:
         coulomb = sign * rolling_share(speed, slide, ratio) if ratio > 0.0 else sign
         design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb))
-        params, info, fitted, error = _fit_signed(design, torque, model)
+        params, info, fitted, error = _fit_signed(design, torque, np.sign(speed).ravel(), model)
         ratio = float(ratio)
         fits.append((error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted))
     physics = fits[0]
@@ -146,16 +146,16 @@ def _per_wheel_columns(law):
     return out
 
 
-def _fit_signed(design, torque, model):
+def _fit_signed(design, torque, friction_signs, model):
     """:func:`_solve_dynamics` of ``torque`` (k, n); a magnitude-only effort is signed by the
-    friction first, then by each fit's explained torque. Returns (params, info, fitted, squared
-    error)."""
+    friction first (``friction_signs``, the speeds' signs, raveled), then by each fit's explained
+    torque. Returns (params, info, fitted, squared error)."""
     n = torque.shape[1]
     if model.drive.signed_effort:
         target = torque.ravel()
         params, info, fitted = _solve_dynamics(design, target, model, n)
     else:
-        signs = np.sign(design[:, 3 + 2 * n:].sum(axis=1))  # the speed's sign (Coulomb columns)
+        signs = friction_signs
         for _ in range(SIGN_REFITS):
             target = np.abs(torque).ravel() * signs
             params, info, fitted = _solve_dynamics(design, target, model, n)
