@@ -121,13 +121,13 @@ def fit_dynamics(arrays, model):
     p_z = forward.T @ np.diag([0.0, 0.0, 1.0]) @ forward
     sign = np.tanh(speed / model.dynamics.parameters.coulomb_velocity_scale)
     slide = model.kinematics.roller_slide(speed)
+    friction_signs = np.sign(speed).ravel()
     inertial = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
     fits = []
-    for ratio in ROLLER_RATIOS:
+    for ratio in ROLLER_RATIOS.tolist():
         coulomb = sign * rolling_share(speed, slide, ratio) if ratio > 0.0 else sign
         design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb))
-        params, info, fitted, error = _fit_signed(design, torque, np.sign(speed).ravel(), model)
-        ratio = float(ratio)
+        params, info, fitted, error = _fit_signed(design, torque, friction_signs, model)
         fits.append((error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted))
     physics = fits[0]
     best = min(fits, key=lambda fit: fit[0])

@@ -160,7 +160,6 @@ class ModelObserver:
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
-        self._coulomb_scale = dyn.parameters.coulomb_velocity_scale
         learned = (model.profile.learned or {}).get('torque')
         #: the learned torque correction (youbot_fdi.fdi.learned), None: physics only
         self.correction = (None if learned is None or settings.physics_only else
@@ -196,21 +195,19 @@ class ModelObserver:
         stacked = [np.stack(m) for m in zip(*(self._discrete(key) for key in keys))]
         return tuple(m[inverse] for m in stacked)
 
-    def _friction_level(self, velocity, coulomb):
-        """The Coulomb part of a wheel's friction level [N·m]: its Coulomb torque as if its contact
-        only rolled (``coulomb`` itself without the contact law, model/dynamics.py). The load
-        condition scales it and the torque bound weighs it: how much of it a sliding contact
-        spares the motor is what a calibration on one floor knows least (the Robotino: the slow
-        wheel of a diagonal needs up to 1.7 times the current on another covering, the fast
-        ones 0.9 to 1.4 times)."""
-        if self.model.dynamics.parameters.roller_friction_ratio <= 0.0:
-            return coulomb
-        return self.model.dynamics.coulomb * np.tanh(velocity / self._coulomb_scale)
-
     def _coulomb(self, velocity):
+        """(Coulomb torque the motors feel, Coulomb level) [N·m] at wheel speeds ``velocity``:
+        with the contact law (model/dynamics.py) the level is the torque as if the contacts only
+        rolled. The load condition scales the level and the torque bound weighs it: how much of
+        it a sliding contact spares the motor is what a calibration on one floor knows least
+        (the Robotino: the slow wheel of a diagonal needs up to 1.7 times the current on another
+        covering, the fast ones 0.9 to 1.4 times)."""
         if not self._has_coulomb:
-            return np.zeros_like(velocity)
-        return self.model.dynamics.coulomb_torque(velocity)
+            zeros = np.zeros_like(velocity)
+            return zeros, zeros
+        dyn = self.model.dynamics
+        level = dyn.coulomb_level(velocity)
+        return dyn.contact_share(velocity, level), level
 
     def _loop_step(self, steps):
         """Exact unsaturated map of ``steps`` firmware periods of the PI loop.
@@ -382,11 +379,11 @@ class ModelObserver:
         """(explained torque, the wheel's friction level, Coulomb torque) over one interval: the
         torque the exactly discretised dynamics need for the measured speed change, with the
         learned correction (if any) in the explained and Coulomb torques only; the friction
-        level is viscous plus :meth:`_friction_level` (the physics friction without the contact
-        law's share)."""
+        level is viscous plus the Coulomb level of :meth:`_coulomb` (the physics friction without
+        the contact law's share)."""
         mean_speed = 0.5 * (velocity + prev_velocity)
-        coulomb = self._coulomb(mean_speed)
-        friction = self.friction * mean_speed + self._friction_level(mean_speed, coulomb)
+        coulomb, level = self._coulomb(mean_speed)
+        friction = self.friction * mean_speed + level
         if self.correction is not None:  # learned friction the physics misses (see fdi/learned.py)
             coulomb = coulomb + self.correction(mean_speed)
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb

@@ -39,8 +39,9 @@ class DynamicParameters:
     viscous_friction: tuple  # D [N·m·s/rad] per wheel
     coulomb_friction: tuple  # F_c [N·m] per wheel
     coulomb_velocity_scale: float  # v_s [rad/s]: tanh smoothing width of the Coulomb term
-    #: k [-]: how much the contact's slide along the rollers widens that smoothing (see
-    #: :meth:`WheelDynamics.coulomb_torque`); 0: per-wheel Coulomb friction (the report's model)
+    #: k [-]: the ratio of the contact's friction along the rollers to that along the rolling
+    #: direction (the contact law, :meth:`WheelDynamics.coulomb_torque`); 0: per-wheel Coulomb
+    #: friction (the report's model)
     roller_friction_ratio: float = 0.0
 
 
@@ -124,9 +125,8 @@ class WheelDynamics:
         self.friction_matrix = np.diag(np.asarray(parameters.viscous_friction, dtype=float))
         self.coulomb = np.asarray(parameters.coulomb_friction, dtype=float)
         self.mass_inverse = np.linalg.inv(self.mass_matrix)
-        #: wheel speeds -> roller slide [wheel rad/s], (n, n); None without the contact law
-        self._slide = (kinematics.roller_jacobian @ kinematics.forward_matrix
-                       if parameters.roller_friction_ratio > 0.0 else None)
+        #: the contact law is on (``roller_friction_ratio`` > 0)
+        self.contact_law = parameters.roller_friction_ratio > 0.0
 
     def state_space(self, friction_matrix=None):
         """Continuous state space of eq. 3.22.
@@ -160,12 +160,20 @@ class WheelDynamics:
         speed alone. A wheel turning slowly while its contact slides sideways needs only part of
         its Coulomb torque (the Robotino's currents follow this at every speed; docs/fdi.md).
         """
-        velocity = np.asarray(velocity, dtype=float)
-        torque = self.coulomb * np.tanh(velocity / self.parameters.coulomb_velocity_scale)
-        if self._slide is None:
-            return torque
-        return torque * rolling_share(velocity, velocity @ self._slide.T,
-                                      self.parameters.roller_friction_ratio)
+        return self.contact_share(velocity, self.coulomb_level(velocity))
+
+    def coulomb_level(self, velocity):
+        """The wheels' Coulomb friction torque as if their contacts only rolled, ``F_c tanh(w /
+        v_s)`` [N·m], shape (..., n): :meth:`coulomb_torque` without the contact law."""
+        return self.coulomb * np.tanh(np.asarray(velocity, dtype=float) / self.parameters.coulomb_velocity_scale)
+
+    def contact_share(self, velocity, level):
+        """The part of the Coulomb ``level`` (:meth:`coulomb_level` at ``velocity``) the motors
+        feel under the contact law [N·m], shape (..., n); ``level`` itself without it."""
+        if not self.contact_law:
+            return level
+        return level * rolling_share(velocity, self.kinematics.roller_slide(velocity),
+                                     self.parameters.roller_friction_ratio)
 
     def acceleration(self, velocity, torque):
         """Wheel accelerations [rad/s²] for wheel speeds [rad/s] and torques [N·m], shape (..., n)."""

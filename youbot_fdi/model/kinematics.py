@@ -61,18 +61,6 @@ def _as_rows(values, width, name):
     return array, single
 
 
-def _roller_row(wheel):
-    """The row of :attr:`Kinematics.roller_jacobian` for ``wheel``: the contact point moves with
-    ``v_c = r theta_dot h + u s`` (h the heading, s the roller direction), so the roller-borne part
-    is ``u = s . v_c - r theta_dot cos(gamma)``; per twist, over r."""
-    direction = wheel.heading + wheel.roller_angle
-    sin_d, cos_d = math.sin(direction), math.cos(direction)
-    slide = np.array([cos_d, sin_d, wheel.x * sin_d - wheel.y * cos_d]) / wheel.radius
-    scale = wheel.radius * math.sin(wheel.roller_angle)
-    driven = np.array([sin_d, -cos_d, -wheel.y * sin_d - wheel.x * cos_d]) / scale
-    return slide - math.cos(wheel.roller_angle) * driven
-
-
 class Kinematics:
     """Wheel-speed <-> base-twist mapping of a :class:`~youbot_fdi.model.geometry.Platform`.
 
@@ -92,21 +80,26 @@ class Kinematics:
 
     def __init__(self, platform):
         self.platform = platform
-        rows = []
+        rows, roller_rows = [], []
         for wheel in platform.wheels:
             direction = wheel.heading + wheel.roller_angle
             sin_d, cos_d = math.sin(direction), math.cos(direction)
             scale = wheel.radius * math.sin(wheel.roller_angle)
-            rows.append((sin_d / scale, -cos_d / scale,
-                         (-wheel.y * sin_d - wheel.x * cos_d) / scale))
+            driven = np.array([sin_d, -cos_d, -wheel.y * sin_d - wheel.x * cos_d]) / scale
+            rows.append(driven)
+            # v_c = r theta_dot h + u s (h the heading, s the roller direction): the roller-borne
+            # part is u = s . v_c - r theta_dot cos(gamma); per twist, over r.
+            slide = np.array([cos_d, sin_d, wheel.x * sin_d - wheel.y * cos_d]) / wheel.radius
+            roller_rows.append(slide - math.cos(wheel.roller_angle) * driven)
         self.jacobian = np.array(rows)
-        self.roller_jacobian = np.array([_roller_row(wheel) for wheel in platform.wheels])
+        self.roller_jacobian = np.array(roller_rows)
         if not determines_twist(self.jacobian):
             singular = np.linalg.svd(self.jacobian, compute_uv=False)
             msg = (f'the wheel layout of {platform.names} does not determine the base twist '
                    f'(Jacobian rank < 3, singular values {singular})')
             raise ModelError(msg)
         self.forward_matrix = np.linalg.pinv(self.jacobian)
+        self._slide_matrix = self.roller_jacobian @ self.forward_matrix  # wheel speeds -> slides
         self.drive_signs = np.array(platform.drive_signs)
 
     @property
@@ -160,7 +153,7 @@ class Kinematics:
         [m/s] over the radius) while the base moves as the wheel speeds say (least squares), shape
         as the input. Zero for a wheel whose contact only rolls; equal to the wheel speed in size
         for an omni wheel whose contact moves at 45° to its rolling direction."""
-        return np.asarray(wheel_speeds, dtype=float) @ (self.roller_jacobian @ self.forward_matrix).T
+        return np.asarray(wheel_speeds, dtype=float) @ self._slide_matrix.T
 
     def slip_residual(self, wheel_speeds):
         """Part of the wheel speeds no rigid base motion explains [rad/s], shape as the input.

@@ -155,27 +155,31 @@ class DemoDriverNode(Node):
             state[event.wheel] = event
         return [e for e in state.values() if e.level == 'ERROR']
 
+    def _record(self, item, seen):
+        """Keep a new event or reaction ``item`` in ``seen`` and the log file; its time since the
+        start [s] (NaN before the start), or None when it was seen already."""
+        if item in seen:
+            return None
+        seen.append(item)
+        if self.log is not None:
+            self.log.write(item)
+        return item.stamp - self.start if self.start is not None else float('nan')
+
     def on_reactions(self, msg):
         for status in msg.status:
             reaction = reaction_from_status(status)
-            if reaction in self.reactions:
+            t = self._record(reaction, self.reactions)
+            if t is None:
                 continue
-            self.reactions.append(reaction)
-            if self.log is not None:
-                self.log.write(reaction)
-            t = reaction.stamp - self.start if self.start is not None else float('nan')
             self.say(f'[{t:6.2f} s] --> {reaction.action} on {reaction.wheel or "base"} '
                      f'({reaction.fault}): {reaction.detail}')
 
     def on_faults(self, msg):
         for status in msg.status:
             event = event_from_status(status)
-            if event in self.events:
+            t = self._record(event, self.events)
+            if t is None:
                 continue
-            self.events.append(event)
-            if self.log is not None:
-                self.log.write(event)
-            t = event.stamp - self.start if self.start is not None else float('nan')
             note = ''
             if event.level == 'ERROR' and self.injected_at is not None:
                 note = f'   ({(event.stamp - self.injected_at) * 1000:.0f} ms after the injection)'
