@@ -1,5 +1,6 @@
 """Diagnosis on data the project did not make: the clock rule, robust bound learning, evidence
 accumulation, common-mode (load) rejection, frozen readings, and the real Robotino recordings."""
+from dataclasses import replace
 import math
 
 import numpy as np
@@ -264,12 +265,15 @@ def test_the_contact_law_explains_real_omni_wheel_currents_better(tmp_path, monk
         fitted = PlatformModel(result.profile)
         arrays = identification.read_arrays(tmp_path / 'held_out', fitted)
         torque = identification.run_generator(fitted, arrays, settings).values['torque']
-        return result.profile.dynamics.roller_friction_ratio, float(np.sqrt(np.nanmean(torque ** 2)))
+        return (result.profile.dynamics.roller_friction_ratio, float(np.sqrt(np.nanmean(torque ** 2))),
+                result.fdi['contact_share_floor'])
 
-    ratio, contact = held_out_rms(identification.ROLLER_RATIOS)
-    _, per_wheel = held_out_rms(np.array([0.0]))
+    ratio, contact, floor = held_out_rms(identification.ROLLER_RATIOS)
+    _, per_wheel, no_floor = held_out_rms(np.array([0.0]))
     assert ratio > 0.0
     assert contact < 0.85 * per_wheel
+    # the range the law was calibrated on: wheels meeting the motion at 0°, 30°, 60° (not 75°)
+    assert 0.2 < floor < 0.9 and no_floor == 0.0
 
 
 def test_unsigned_effort_is_signed_by_the_explained_torque(model):
@@ -282,3 +286,111 @@ def test_unsigned_effort_is_signed_by_the_explained_torque(model):
     signs = signed_torque(np.array([0.5, 0.5]), np.array([-0.2, 0.3]), generator.observer.signed_effort)
     assert signs.tolist() == [-0.5, 0.5]
     assert FdiPipeline(unsigned).generator.observer.signed_effort is False
+
+
+# ---------------------------------------------------------------------- re-sent messages
+def _batch(rows):
+    """A JointBatch of two wheels from rows (position, speed, effort) of equal values per wheel,
+    sampled every 20 ms."""
+    from youbot_fdi.samples import JointBatch
+    values = np.array(rows, dtype=float)
+    return JointBatch(0.02 * np.arange(len(rows)), *(np.repeat(values[:, [k]], 2, axis=1) for k in range(3)))
+
+
+def test_a_message_re_sent_unchanged_while_the_base_moves_carries_no_fresh_data():
+    from youbot_fdi.samples import RepeatedMessages
+    moving = _batch([(0.0, 1.0, 0.2), (0.02, 1.0, 0.2), (0.02, 1.0, 0.2), (0.02, 1.0, 0.2), (0.06, 1.0, 0.2)])
+    repeated = RepeatedMessages()
+    assert repeated.fresh(moving).tolist() == [True, True, False, False, True]
+    assert repeated.count == 2
+    standing = _batch([(0.5, 0.0, 0.0)] * 4)  # a base standing still repeats itself legitimately
+    assert RepeatedMessages().fresh(standing).all()
+    one_wheel = _batch([(0.0, 1.0, 0.2), (0.02, 1.0, 0.2)])
+    one_wheel.position[1, 1] = 0.0  # wheel 2's reading repeats, wheel 1's does not: its fault
+    assert RepeatedMessages().fresh(one_wheel).all()
+    # the state carries over blocks, and one sample at a time gives the same
+    split = RepeatedMessages()
+    assert split.fresh(moving.rows(0, 2)).tolist() + split.fresh(moving.rows(2, 5)).tolist() == \
+        [True, True, False, False, True]
+    single = RepeatedMessages()
+    assert [single.fresh_sample(moving.sample(k)) for k in range(5)] == [True, True, False, False, True]
+
+
+def _resend(chunks, start, count):
+    """The chunks with joint rows ``start`` .. ``start + count`` (over the recording) replaced by
+    copies of row ``start - 1``, stamps kept: a logger re-sending its last message."""
+    from youbot_fdi.samples import JointBatch
+    out, offset, last = [], 0, None
+    for chunk in chunks:
+        j = chunk.joints
+        arrays = [a.copy() for a in (j.position, j.velocity, j.effort)]
+        for k in range(max(start, offset), min(start + count, offset + len(j))):
+            for a, previous in zip(arrays, last if k == offset else (a[k - 1 - offset] for a in arrays)):
+                a[k - offset] = previous
+        out.append(replace(chunk, joints=JointBatch(j.stamp, *arrays)))
+        last = [a[-1].copy() for a in arrays]
+        offset += len(j)
+    return out
+
+
+@pytest.mark.parametrize('count, base_silent', [(4, False), (40, True)])
+def test_re_sent_messages_are_missing_data_not_a_wheel_fault(calibrated, count, base_silent):
+    """Every wheel's readings re-sent for a few samples while the base drives: no alarm (the
+    Robotino's logger does this); for longer than the data timeout: the base's comm_loss, as a
+    gap in /joint_states is, not a wheel fault."""
+    from youbot_fdi.bag.reader import RecordingReader
+    root, params = calibrated
+    model, pipeline = build_pipeline(params)
+    with RecordingReader(root / 'nominal', model.wheel_names) as reader:
+        chunks = list(reader.chunks(size=64))
+    start = 2 * 50 + 17  # in the second 1.5 s segment (driving sideways), 50 Hz
+    events = [e for chunk in _resend(chunks, start, count) for e in pipeline.feed(chunk)]
+    alarms = [e for e in events if e.level == 'ERROR']
+    assert pipeline.repeated.count == count
+    if base_silent:
+        assert [(e.wheel, e.fault) for e in alarms] == [(None, "comm_loss")]
+    else:
+        assert alarms == []
+
+
+# ---------------------------------------------------------------------- the contact law's range
+def _contact_model(ratio):
+    from youbot_fdi.model.profile import PlatformModel
+    base = load_model('youbot')
+    return PlatformModel(replace(base.profile, dynamics=replace(
+        base.profile.dynamics, coulomb_friction=(0.3,) * 4, roller_friction_ratio=ratio)))
+
+
+def test_a_wheel_outside_the_contact_laws_calibrated_range_is_allowed_the_shortfall():
+    """Below the lowest rolling share seen in calibration the law is extrapolated: the torque
+    bound allows the Coulomb level times the shortfall, the command bound what the loop's
+    proportional gain leaves of it; nothing changes without the law or inside its range."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    from youbot_fdi.samples import JointSample
+    speeds = np.array([[0.1, 4.0, 4.0, 0.1]])  # wheels 1 and 4 turn slowly while their contacts slide
+    model = _contact_model(1.0)
+    dyn = model.dynamics
+    share = dyn.rolling_shares(speeds)[0]
+    assert share[0] < 0.3 and share[1] > 0.6
+    floor = 0.6
+    observer = ModelObserver(model, replace(FdiSettings(), contact_share_floor=floor))
+    _, level, unseen = observer._coulomb(speeds)
+    np.testing.assert_allclose(unseen[0], level[0] * np.maximum(0.0, floor - share))
+    assert unseen[0, 0] > 0.0 and unseen[0, 1] == 0.0
+    assert not ModelObserver(model, FdiSettings())._coulomb(speeds)[2].any()  # floor 0: no limit
+    assert not ModelObserver(_contact_model(0.0), replace(FdiSettings(), contact_share_floor=floor)) \
+        ._coulomb(speeds)[2].any()  # per-wheel Coulomb: no contact law to extrapolate
+
+    def bounds(settings):
+        generator = ResidualGenerator(model, settings)
+        frames = [generator.update(JointSample(0.01 * k, speeds[0] * 0.01 * k, speeds[0], 0.2 * np.sign(speeds[0])))
+                  for k in range(60)]  # past the command path's start-up time
+        return frames[-1], generator.last_prediction
+
+    wide, prediction = bounds(replace(FdiSettings(), contact_share_floor=floor))
+    narrow, _ = bounds(FdiSettings())
+    extra = np.abs(prediction.load_factor * prediction.unseen_friction)
+    np.testing.assert_allclose(wide.bounds['torque'] - narrow.bounds['torque'], extra, atol=1e-12)
+    compliance = 1.0 / (model.firmware.velocity_kp * model.drive.torque_per_amp)
+    np.testing.assert_allclose(wide.bounds['command'] - narrow.bounds['command'], extra * compliance,
+                               atol=1e-12)

@@ -59,6 +59,51 @@ class JointBatch:
         """No samples of ``n`` wheels."""
         return cls(np.empty(0), *(np.empty((0, n)) for _ in range(3)))
 
+    def select(self, rows):
+        """The rows picked by ``rows`` (a boolean mask or indices) as a batch."""
+        return JointBatch(self.stamp[rows], self.position[rows], self.velocity[rows], self.effort[rows])
+
+
+def _same(now, before):
+    """Row-wise: every value of ``now`` (N, n) equals ``before`` (N, n), NaN matching NaN."""
+    return np.all((now == before) | (np.isnan(now) & np.isnan(before)), axis=1)
+
+
+class RepeatedMessages:
+    """Finds /joint_states messages that repeat the one before in every reading of every wheel
+    (position, speed and effort) while that one showed a wheel turning: a logger or driver
+    re-sending its last data under a new stamp (the Robotino's logger does, for up to a few
+    samples). They carry no fresh data and are left out, like a gap, so that a long run of them
+    is the base's comm_loss after ``data_timeout`` as a gap is; one wheel's readings repeating
+    while the others change is that wheel's fault, and is kept. A base standing still repeats
+    its readings legitimately (every speed reading zero) and is kept too.
+
+    Stateful (the last message seen); :meth:`fresh` for a block, the same rule one row at a time.
+    """
+
+    def __init__(self):
+        self._last = None  # (position, velocity, effort) of the last message seen, (n,) each
+        self.count = 0  # messages left out so far
+
+    def fresh(self, joints):
+        """Mask (N,) of the rows of ``joints`` (:class:`JointBatch`) that carry fresh data."""
+        if not len(joints):
+            return np.ones(0, dtype=bool)
+        arrays = (joints.position, joints.velocity, joints.effort)
+        if self._last is None:
+            self._last = tuple(np.full(a.shape[1], np.nan) for a in arrays)
+        before = [np.concatenate([last[None], a[:-1]]) for last, a in zip(self._last, arrays)]
+        repeated = (_same(joints.position, before[0]) & _same(joints.velocity, before[1])
+                    & _same(joints.effort, before[2]) & np.any(before[1] != 0.0, axis=1))
+        self._last = tuple(a[-1] for a in arrays)
+        self.count += int(np.count_nonzero(repeated))
+        return ~repeated
+
+    def fresh_sample(self, sample):
+        """Whether one :class:`JointSample` carries fresh data (the rule of :meth:`fresh`)."""
+        return bool(self.fresh(JointBatch(np.array([sample.stamp]), sample.position[None],
+                                          sample.velocity[None], sample.effort[None]))[0])
+
 
 @dataclass(frozen=True)
 class CommandBatch:
@@ -114,6 +159,7 @@ INPUT_PROBLEMS = {
     'stamps_backwards': 'header stamp going backwards',
     'stamps_repeated': 'header stamp repeated (duplicated sample)',
     'gaps': 'gap in the samples',
+    'messages_repeated': 'every reading re-sent unchanged while the base moved (no fresh data)',
     'unpaired': 'a prediction not starting at the last sample (one lost between nodes)',
     'dropped_unpaired': 'a sample or prediction whose counterpart never came',
     'skipped_unstamped': 'no header stamp: cannot be paired with its prediction (run the observer fused)',

@@ -50,7 +50,8 @@ def run(args):
           f'  (torque fit R² {result.info["torque_fit_r_squared"]:.4f})')
     print('  viscous friction D [N·m·s/rad]: ' + ', '.join(f'{v:.4f}' for v in dyn.viscous_friction))
     print('  Coulomb friction [N·m]: ' + ', '.join(f'{v:.4f}' for v in dyn.coulomb_friction)
-          + (f'; contact law, roller friction ratio {dyn.roller_friction_ratio:g}'
+          + (f'; contact law, roller friction ratio {dyn.roller_friction_ratio:g}, calibrated down to a '
+             f'rolling share of {result.fdi.get("contact_share_floor", 0.0):.2f}'
              if dyn.roller_friction_ratio > 0 else '; per wheel (no contact law)'))
     print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
           f'ki {profile.firmware.velocity_ki:.3g} A/rad')

@@ -41,7 +41,7 @@ from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerat
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.dynamics import rolling_share
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
-from youbot_fdi.samples import CommandBatch, JointBatch
+from youbot_fdi.samples import CommandBatch, JointBatch, RepeatedMessages
 from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 SAVGOL_WINDOW = 9  # samples
@@ -94,9 +94,9 @@ def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMA
         msg = f'{path}: {len(rows)} usable joint states; identification needs at least {MIN_SAMPLES}'
         raise IdentificationError(msg)
     rows.sort(key=lambda r: r[0])
-    time = np.array([r[0] for r in rows])
-    return RecordingArrays(time, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                           np.array([r[3] for r in rows]), commands, damage)
+    joints = JointBatch(*(np.array([r[k] for r in rows]) for k in range(4)))
+    joints = joints.select(RepeatedMessages().fresh(joints))  # re-sent messages carry nothing
+    return RecordingArrays(joints.stamp, joints.position, joints.velocity, joints.effort, commands, damage)
 
 
 def _smooth(values, dt, deriv=0):
@@ -341,6 +341,20 @@ def fit_bounds(batch, settings):
     return learned, coverage
 
 
+def contact_share_floor(model, arrays, settings):
+    """The lowest rolling share (model/dynamics.py) of a turning wheel the recording covers: the
+    ``1 - bound_quantile`` quantile over the samples of wheels faster than ``stuck_speed``
+    [rad/s]; 0 (no limit) without the contact law or without such samples. Below it the law is
+    extrapolated, and the torque bound allows for it (``contact_share_floor``)."""
+    dynamics = model.dynamics
+    mean_speed = 0.5 * (arrays.velocity[1:] + arrays.velocity[:-1])
+    turning = np.abs(mean_speed) > settings.stuck_speed
+    if not dynamics.contact_law or not turning.any():
+        return 0.0
+    shares = dynamics.rolling_shares(mean_speed)[turning]
+    return float(np.quantile(shares, 1.0 - settings.bound_quantile))
+
+
 def _rms(batch):
     """{family: RMS of its residuals over the rows and wheels} of a ResidualBatch."""
     return {family: float(np.sqrt(np.nanmean(values ** 2))) for family, values in batch.values.items()}
@@ -404,7 +418,8 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
     nrmse_currents = nrmse(arrays.velocity, simulate_from_currents(model, arrays))
     nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays, delay))
                       if firmware is not None else None)
-    settings = replace(settings, sample_interval=interval)
+    settings = replace(settings, sample_interval=interval,
+                       contact_share_floor=contact_share_floor(model, arrays, settings))
     if delay is not None:
         settings = replace(settings, input_delay=delay)
     physics = run_generator(model, arrays, settings)  # the residuals both fits below start from
@@ -416,6 +431,7 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
     info['learning'] = {'notes': notes, 'residual_rms': spread} if learn else 'physics only'
 
     fdi['sample_interval'] = interval
+    fdi['contact_share_floor'] = settings.contact_share_floor
     if delay is not None:
         fdi['input_delay'] = delay
     info.update({'recording': str(path), 'samples': int(len(arrays.time)),

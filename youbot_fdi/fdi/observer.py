@@ -45,7 +45,7 @@ DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
 MAX_PENDING_COMMANDS = 256
 #: Per-wheel fields of a prediction, in labelled-vector order (see Prediction.to_labelled).
 WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
-                'commanded_before', 'explained', 'friction')
+                'commanded_before', 'explained', 'friction', 'unseen_friction')
 #: Scalar fields of a prediction, after the per-wheel ones.
 SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor')
 
@@ -71,6 +71,7 @@ class Prediction:
     velocity_mode: bool
     explained: np.ndarray  # [N·m]
     friction: np.ndarray  # [N·m]
+    unseen_friction: np.ndarray  # [N·m] friction the contact law may miss out of its calibrated range
     load_factor: float  # [-]
 
     @staticmethod
@@ -124,6 +125,7 @@ class PredictionBatch:
     velocity_mode: np.ndarray
     explained: np.ndarray
     friction: np.ndarray
+    unseen_friction: np.ndarray
     load_factor: np.ndarray
 
     def __len__(self):
@@ -196,18 +198,23 @@ class ModelObserver:
         return tuple(m[inverse] for m in stacked)
 
     def _coulomb(self, velocity):
-        """(Coulomb torque the motors feel, Coulomb level) [N·m] at wheel speeds ``velocity``:
-        with the contact law (model/dynamics.py) the level is the torque as if the contacts only
-        rolled. The load condition scales the level and the torque bound weighs it: how much of
+        """(Coulomb torque the motors feel, Coulomb level, unseen friction) [N·m] at wheel speeds
+        ``velocity``: with the contact law (model/dynamics.py) the level is the torque as if the
+        contacts only rolled, and a wheel whose rolling share is below ``contact_share_floor`` (the
+        lowest share seen turning in calibration) may need up to the level times the shortfall
+        more than the law says: the unseen friction, which the torque bound allows. The load condition scales the level and the torque bound weighs it: how much of
         it a sliding contact spares the motor is what a calibration on one floor knows least
         (the Robotino: the slow wheel of a diagonal needs up to 1.7 times the current on another
         covering, the fast ones 0.9 to 1.4 times)."""
         if not self._has_coulomb:
             zeros = np.zeros_like(velocity)
-            return zeros, zeros
+            return zeros, zeros, zeros
         dyn = self.model.dynamics
         level = dyn.coulomb_level(velocity)
-        return dyn.contact_share(velocity, level), level
+        if not dyn.contact_law:
+            return level, level, np.zeros_like(level)
+        share = dyn.rolling_shares(velocity)
+        return level * share, level, level * np.maximum(0.0, self.settings.contact_share_floor - share)
 
     def _loop_step(self, steps):
         """Exact unsaturated map of ``steps`` firmware periods of the PI loop.
@@ -376,18 +383,19 @@ class ModelObserver:
     # ------------------------------------------------------------------ the model's torque
     # Shapes (n,) for one sample or (N, n) for a block.
     def _explained(self, velocity, prev_velocity, phi, gamma_inv):
-        """(explained torque, the wheel's friction level, Coulomb torque) over one interval: the
+        """(explained torque, the wheel's friction level, Coulomb torque, unseen friction) over one
+        interval: the
         torque the exactly discretised dynamics need for the measured speed change, with the
         learned correction (if any) in the explained and Coulomb torques only; the friction
         level is viscous plus the Coulomb level of :meth:`_coulomb` (the physics friction without
         the contact law's share)."""
         mean_speed = 0.5 * (velocity + prev_velocity)
-        coulomb, level = self._coulomb(mean_speed)
+        coulomb, level, unseen = self._coulomb(mean_speed)
         friction = self.friction * mean_speed + level
         if self.correction is not None:  # learned friction the physics misses (see fdi/learned.py)
             coulomb = coulomb + self.correction(mean_speed)
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
-        return explained, friction, coulomb
+        return explained, friction, coulomb, unseen
 
     def _load_votes(self, mean_torque, explained, friction):
         """Per wheel, (load part: measured minus inertial torque, friction level), zero where the
@@ -443,7 +451,7 @@ class ModelObserver:
             return None
         last_stamp, last_velocity, last_torque = self._last
         phi, gamma, gamma_inv = self._discrete(dt)
-        explained, friction, coulomb = self._explained(velocity, last_velocity, phi, gamma_inv)
+        explained, friction, coulomb, unseen = self._explained(velocity, last_velocity, phi, gamma_inv)
         torque = signed_torque(torque, explained, self.signed_effort)
         mean_torque = 0.5 * (torque + last_torque)
         keep = self._smoothing(dt)
@@ -467,7 +475,7 @@ class ModelObserver:
             stamp=stamp, since=last_stamp, from_currents=predicted,
             from_commands=self._command_state[:n], commands_before=before, commanded=target,
             commanded_before=self._last_target, velocity_mode=velocity_mode, explained=explained,
-            friction=friction, load_factor=load)
+            friction=friction, unseen_friction=unseen, load_factor=load)
         self._last_target = target
         self._last = (stamp, velocity, torque)
         return prediction
@@ -486,7 +494,7 @@ class ModelObserver:
         if rows == 0:
             empty = np.empty((0, n))
             return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 5,
-                                   velocity_mode, empty, empty, np.empty(0))
+                                   velocity_mode, empty, empty, empty, np.empty(0))
         first = self._last is None
         if first:
             self._restart(stamp[0], velocity[0], torque[0], velocity_mode[0], target[0])
@@ -501,7 +509,7 @@ class ModelObserver:
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]
-        explained, friction, coulomb = self._explained(velocity, prev_velocity, phi, gamma_inv)
+        explained, friction, coulomb, unseen = self._explained(velocity, prev_velocity, phi, gamma_inv)
         torque = signed_torque(torque, explained, self.signed_effort)
         if not self.signed_effort and restart.any():  # as _restart signs it
             torque[restart] = signed_torque(torque[restart], velocity[restart], False)
@@ -539,7 +547,8 @@ class ModelObserver:
             from_currents=predicted, from_commands=speed,
             commands_before=np.concatenate([command_before[None, :n], speed[:-1]]),
             commanded=target, commanded_before=np.concatenate([self._last_target[None], target[:-1]]),
-            velocity_mode=velocity_mode, explained=explained, friction=friction, load_factor=load)
+            velocity_mode=velocity_mode, explained=explained, friction=friction,
+            unseen_friction=unseen, load_factor=load)
         self._last = (stamp[-1], velocity[-1], torque[-1])
         self._observer, self._command_state = observer[-1], path[-1]
         self._load = (smoothed[-1], float(load[-1]))

@@ -15,7 +15,7 @@ from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model, load_profile, PlatformModel
-from youbot_fdi.samples import CommandBatch
+from youbot_fdi.samples import CommandBatch, RepeatedMessages
 from youbot_fdi.settings import load_settings, settings_from_mapping
 from youbot_fdi.structure.generate import wheel_suffix
 from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
@@ -107,6 +107,8 @@ class FdiPipeline:
         self.decision = DecisionMaker(model.wheel_names, settings, residual_data)
         self._kept = [] if keep_frames else None
         self._last_stamp = None
+        #: re-sent /joint_states messages, left out (youbot_fdi.samples.RepeatedMessages)
+        self.repeated = RepeatedMessages()
 
     def residuals(self):
         """Every residual frame so far as one :class:`~youbot_fdi.fdi.residuals.ResidualBatch`
@@ -122,6 +124,9 @@ class FdiPipeline:
         gap, cleared by the sample after it).
         """
         joints, commands, before = chunk.joints, chunk.commands, chunk.commands_before
+        fresh = self.repeated.fresh(joints)
+        if not fresh.all():  # re-sent messages: no fresh data, as if missing
+            joints, before = joints.select(fresh), before[fresh]
         rows = len(joints)
         seen = np.maximum.accumulate(np.concatenate([[-np.inf if self._last_stamp is None
                                                       else self._last_stamp], joints.stamp]))
@@ -129,12 +134,6 @@ class FdiPipeline:
                               & (joints.stamp - seen[:-1] > self.settings.data_timeout))
         if rows:
             self._last_stamp = float(seen[-1])
-        stalled = []
-        if (self._last_stamp is not None and len(commands)
-                and commands.stamp.max() - self._last_stamp > self.settings.data_timeout):
-            # Commands go on, joint states do not: the base went silent (what the decision
-            # node's timer finds live); cleared by the next joint state.
-            stalled = self.decision.data_stalled(self._last_stamp)
         events, applied = [], 0
         bounds = [0, *(g for g in gaps.tolist() if g > 0), rows]  # one segment at least
         for start, stop in zip(bounds[:-1], bounds[1:]):
@@ -153,7 +152,13 @@ class FdiPipeline:
             if self._kept is not None and len(batch):
                 self._kept.append(batch)
             events += self.decision.update_batch(batch)
-        return events + stalled
+        if (self._last_stamp is not None and len(commands)
+                and commands.stamp.max() - self._last_stamp > self.settings.data_timeout):
+            # Commands go on, joint states do not: the base went silent (what the decision
+            # node's timer finds live); cleared by the next joint state. Judged after this
+            # chunk's samples, which would otherwise clear it at once.
+            events += self.decision.data_stalled(self._last_stamp)
+        return events
 
     def replay(self, path, joint_topic=None, command_topic=None, on_event=None, on_progress=None):
         """Feed a rosbag2 recording through the pipeline, streaming, a chunk at a time.
@@ -171,5 +176,6 @@ class FdiPipeline:
                     events.append(event)
                     if on_event is not None:
                         on_event(event)
-            return ReplayResult(events, {**reader.counters, **self.generator.counters},
+            return ReplayResult(events, {**reader.counters, **self.generator.counters,
+                                         'messages_repeated': self.repeated.count},
                                 reader.has_commands, reader.damage)

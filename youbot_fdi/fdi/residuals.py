@@ -253,6 +253,10 @@ class ResidualEvaluator:
         drive = model.drive
         #: one encoder tick at the wheel [rad]
         self.position_quantum = 2.0 * np.pi * drive.gear_ratio / drive.encoder_ticks_per_revolution
+        #: speed lost per unit of unexpected friction under the firmware's proportional gain
+        #: [rad/s per N·m] (0 without a loop)
+        stiffness = model.firmware.velocity_kp * drive.torque_per_amp
+        self.loop_compliance = 1.0 / stiffness if stiffness > 0.0 else 0.0
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
         self.counters = {'unpaired': 0}
@@ -282,25 +286,29 @@ class ResidualEvaluator:
         """The bound [residual units] of ``family`` from its features (..., n, k)."""
         return features @ self._coefficients[family]
 
-    def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, explained, friction, load, step):
+    def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, explained, friction, unseen,
+                      load, step):
         """(residual, features, allowance) of the torque family; ``load`` the load factor (scalar
         or (N, 1)) scales the friction part of the explained torque, and the bound allows
         ``load_allowance`` of that change (the factor is an estimate: how friction splits into its
-        viscous and Coulomb parts changes with the floor too)."""
+        viscous and Coulomb parts changes with the floor too) and the ``unseen`` friction of a
+        wheel outside the contact law's calibrated range (observer.py), at the load."""
         mean_torque = 0.5 * (torque + prev_torque)
         inertial = (velocity - prev_velocity) @ self.mass_matrix.T / step
         residual = mean_torque - explained - (load - 1.0) * friction
-        allowance = self.settings.load_allowance * np.abs((load - 1.0) * friction)
+        allowance = (self.settings.load_allowance * np.abs((load - 1.0) * friction)
+                     + np.abs(load * unseen))
         features = columns(1.0, np.abs(inertial), np.abs(torque - prev_torque), np.abs(load * friction))
         return residual, features, allowance
 
     def _command_terms(self, velocity, torque, speed, before, target, previous_target, velocity_mode,
-                       settling, step):
+                       settling, unseen, step):
         """(residual, bound) of the command family: ``speed`` predicted now, ``before`` at the
         previous sample, ``previous_target`` the command in force then; ``velocity_mode`` and
         ``settling`` broadcast against (…, n). In current mode a command may act up to
-        ``command_delay`` later than predicted: that share of a step is allowed. Also the
-        features of both bounds."""
+        ``command_delay`` later than predicted: that share of a step is allowed. In velocity mode
+        the ``unseen`` friction [N·m] (observer.py) may slow the wheel by what the loop's
+        proportional gain leaves of it. Also the features of both bounds."""
         s = self.settings
         residual = np.where(settling, 0.0, np.where(velocity_mode, velocity - speed, torque - target))
         velocity_f = columns(1.0, np.abs(speed), np.maximum(np.abs(target - speed), np.abs(target - before)),
@@ -308,7 +316,8 @@ class ResidualEvaluator:
         effort_f = columns(1.0, np.abs(target))
         effort_u = (self.bound('effort', effort_f)
                     + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
-        bound = np.where(settling, 1.0, np.where(velocity_mode, self.bound('command', velocity_f), effort_u))
+        velocity_u = self.bound('command', velocity_f) + np.abs(unseen) * self.loop_compliance
+        bound = np.where(settling, 1.0, np.where(velocity_mode, velocity_u, effort_u))
         return residual, bound, velocity_f, effort_f
 
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
@@ -344,10 +353,11 @@ class ResidualEvaluator:
         dt = stamp - last_stamp
         torque = signed_torque(torque, p.explained, self.signed_effort)
         torque_r, torque_f, torque_a = self._torque_terms(
-            torque, last_torque, velocity, last_velocity, p.explained, p.friction, p.load_factor, dt)
+            torque, last_torque, velocity, last_velocity, p.explained, p.friction, p.unseen_friction,
+            p.load_factor, dt)
         command_r, command_u, _, _ = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.velocity_mode, stamp - self._started < s.startup_time, dt)
+            p.velocity_mode, stamp - self._started < s.startup_time, p.unseen_friction, dt)
         mean_speed = 0.5 * (velocity + last_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, last_position, mean_speed,
                                                    velocity - last_velocity, dt)
@@ -397,12 +407,14 @@ class ResidualEvaluator:
         prev_torque = np.concatenate([last_torque[None], torque[:-1]])
         load = p.load_factor[:, None]
         torque_r, torque_f, torque_a = self._torque_terms(
-            torque, prev_torque, velocity, prev_velocity, p.explained, p.friction, load, step)
+            torque, prev_torque, velocity, prev_velocity, p.explained, p.friction, p.unseen_friction,
+            load, step)
         observer_f = self._observer_features(p.from_currents)
         started = last_true_value(restart, stamp, self._started)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.velocity_mode[:, None], (stamp - started < s.startup_time)[:, None], step)
+            p.velocity_mode[:, None], (stamp - started < s.startup_time)[:, None], p.unseen_friction,
+            step)
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
                                                    velocity - prev_velocity, step)

@@ -29,6 +29,10 @@ class FdiSettings:
     torque_inertia_fraction: float = 0.3
     torque_current_change_fraction: float = 0.6
     torque_friction_fraction: float = 0.4
+    # the contact law's range: a wheel whose rolling share (model/dynamics.py) is below the lowest
+    # share seen turning in calibration (``identify`` measures it; 0: no limit) is judged with
+    # that much more of its Coulomb level allowed (the law is extrapolated there) [-]
+    contact_share_floor: float = 0.0
     # observer_<w>: measured minus current-driven predicted speed [rad/s]
     observer_sigma: float = 0.3
     observer_speed_fraction: float = 0.3
@@ -94,6 +98,8 @@ class FdiSettings:
             problems.append('load_factor_limit')
         if not 0.5 <= self.bound_quantile < 1.0:
             problems.append('bound_quantile')
+        if self.contact_share_floor > 1.0:
+            problems.append('contact_share_floor')
         if problems:
             msg = f'{source}: out of range: {sorted(set(problems))}'
             raise ConfigError(msg)

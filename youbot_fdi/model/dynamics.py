@@ -172,8 +172,17 @@ class WheelDynamics:
         feel under the contact law [N·m], shape (..., n); ``level`` itself without it."""
         if not self.contact_law:
             return level
-        return level * rolling_share(velocity, self.kinematics.roller_slide(velocity),
-                                     self.parameters.roller_friction_ratio)
+        return level * self.rolling_shares(velocity)
+
+    def rolling_shares(self, velocity):
+        """The share [0, 1] of each wheel's Coulomb level its motor feels at wheel speeds
+        ``velocity`` [rad/s], shape (..., n): :func:`rolling_share` of the contact law (all ones
+        without it)."""
+        velocity = np.asarray(velocity, dtype=float)
+        if not self.contact_law:
+            return np.ones_like(velocity)
+        return rolling_share(velocity, self.kinematics.roller_slide(velocity),
+                             self.parameters.roller_friction_ratio)
 
     def acceleration(self, velocity, torque):
         """Wheel accelerations [rad/s²] for wheel speeds [rad/s] and torques [N·m], shape (..., n)."""

@@ -45,7 +45,7 @@ from youbot_fdi.nodes.common import (declare_settings, INPUT_WARN_INTERVAL, Inpu
                                      now_seconds, SENSOR_QOS, spin_nodes, stamp_to_seconds,
                                      STREAM_QOS)
 from youbot_fdi.nodes.conversions import joint_state, labelled_vector
-from youbot_fdi.samples import message_time, SampleMapper
+from youbot_fdi.samples import message_time, RepeatedMessages, SampleMapper
 from youbot_fdi.topics import JOINT_STATES, PREDICTED, RESIDUALS, WHEEL_COMMANDS
 
 NODE_NAME = 'observer'
@@ -71,6 +71,7 @@ class ObserverNode(Node):
         self.generator = ResidualGenerator(self.model, self.settings)
         self.observer = self.generator.observer
         self.mapper = SampleMapper(self.names)
+        self.repeated = RepeatedMessages()  # re-sent messages, left out as in replay
         self.warnings = InputWarnings(self, warn_interval)
         self.predicted_pub = self.create_publisher(JointState, PREDICTED, STREAM_QOS)
         self.residual_pub = (self.create_publisher(JointState, RESIDUALS, STREAM_QOS)
@@ -90,7 +91,7 @@ class ObserverNode(Node):
         stamp = float(message_time(stamp_to_seconds(msg.header.stamp), now_seconds(self)))
         sample = self.mapper.joint_sample(stamp, msg.name,
                                           msg.position, msg.velocity, msg.effort)
-        if sample is None:
+        if sample is None or not self.repeated.fresh_sample(sample):  # bad, or re-sent: no fresh data
             self.report_input()
             return
         if self.fused:
@@ -108,7 +109,8 @@ class ObserverNode(Node):
 
     def report_input(self):
         """A rate-limited WARN on /diagnostics naming the input problems counted so far."""
-        self.warnings.check({**self.mapper.counters, **self.observer.counters})
+        self.warnings.check({**self.mapper.counters, **self.observer.counters,
+                             'messages_repeated': self.repeated.count})
 
 
 def main(args=None):
