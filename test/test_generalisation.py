@@ -366,7 +366,7 @@ def test_a_wheel_outside_the_contact_laws_calibrated_range_is_allowed_the_shortf
     bound allows the Coulomb level times the shortfall, the command bound what the loop's
     proportional gain leaves of it; nothing changes without the law or inside its range."""
     from youbot_fdi.fdi.observer import ModelObserver
-    from youbot_fdi.samples import JointSample
+    from youbot_fdi.samples import JointBatch, JointSample
     speeds = np.array([[0.1, 4.0, 4.0, 0.1]])  # wheels 1 and 4 turn slowly while their contacts slide
     model = _contact_model(1.0)
     dyn = model.dynamics
@@ -382,9 +382,15 @@ def test_a_wheel_outside_the_contact_laws_calibrated_range_is_allowed_the_shortf
         ._coulomb(speeds)[2].any()  # per-wheel Coulomb: no contact law to extrapolate
 
     def bounds(settings):
+        samples = [JointSample(0.01 * k, speeds[0] * 0.01 * k, speeds[0], 0.2 * np.sign(speeds[0]))
+                   for k in range(60)]  # past the command path's start-up time
         generator = ResidualGenerator(model, settings)
-        frames = [generator.update(JointSample(0.01 * k, speeds[0] * 0.01 * k, speeds[0], 0.2 * np.sign(speeds[0])))
-                  for k in range(60)]  # past the command path's start-up time
+        frames = [generator.update(sample) for sample in samples]
+        batch = ResidualGenerator(model, settings).update_batch(JointBatch(
+            np.array([x.stamp for x in samples]), *(np.array([getattr(x, f) for x in samples])
+                                                    for f in ('position', 'velocity', 'effort'))))
+        for family in ('torque', 'command'):  # one sample at a time and in a block alike
+            np.testing.assert_allclose(batch.bounds[family][-1], frames[-1].bounds[family], rtol=1e-12)
         return frames[-1], generator.last_prediction
 
     wide, prediction = bounds(replace(FdiSettings(), contact_share_floor=floor))

@@ -202,10 +202,11 @@ class ModelObserver:
         ``velocity``: with the contact law (model/dynamics.py) the level is the torque as if the
         contacts only rolled, and a wheel whose rolling share is below ``contact_share_floor`` (the
         lowest share seen turning in calibration) may need up to the level times the shortfall
-        more than the law says: the unseen friction, which the torque bound allows. The load condition scales the level and the torque bound weighs it: how much of
-        it a sliding contact spares the motor is what a calibration on one floor knows least
-        (the Robotino: the slow wheel of a diagonal needs up to 1.7 times the current on another
-        covering, the fast ones 0.9 to 1.4 times)."""
+        more than the law says: the unseen friction, which the bounds allow. The load condition
+        scales the level and the torque bound weighs it: how much of it a sliding contact spares
+        the motor is what a calibration on one floor knows least (the Robotino: the slow wheel of
+        a diagonal needs up to 1.7 times the current on another covering, the fast ones 0.9 to
+        1.4 times)."""
         if not self._has_coulomb:
             zeros = np.zeros_like(velocity)
             return zeros, zeros, zeros
@@ -384,11 +385,10 @@ class ModelObserver:
     # Shapes (n,) for one sample or (N, n) for a block.
     def _explained(self, velocity, prev_velocity, phi, gamma_inv):
         """(explained torque, the wheel's friction level, Coulomb torque, unseen friction) over one
-        interval: the
-        torque the exactly discretised dynamics need for the measured speed change, with the
-        learned correction (if any) in the explained and Coulomb torques only; the friction
-        level is viscous plus the Coulomb level of :meth:`_coulomb` (the physics friction without
-        the contact law's share)."""
+        interval: the torque the exactly discretised dynamics need for the measured speed change,
+        with the learned correction (if any) in the explained and Coulomb torques only; the
+        friction level is viscous plus the Coulomb level of :meth:`_coulomb` (the physics friction
+        without the contact law's share), the unseen friction as :meth:`_coulomb` gives it."""
         mean_speed = 0.5 * (velocity + prev_velocity)
         coulomb, level, unseen = self._coulomb(mean_speed)
         friction = self.friction * mean_speed + level
