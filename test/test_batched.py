@@ -16,7 +16,8 @@ from youbot_fdi.bag.cdr import JointStateLayout
 from youbot_fdi.fdi.pipeline import build_pipeline
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.pipeline import FdiPipeline, load_residual_data
-from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, run_lengths
+from youbot_fdi.fdi.recursions import (affine_recursion, bounded_cusum, cusum, last_true_value,
+                                      run_lengths, scalar_recursion)
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
 from youbot_fdi.samples import SampleMapper
 from youbot_fdi.model import load_model
@@ -269,6 +270,35 @@ def test_affine_recursion_equals_its_loop(rows, size, seed):
     np.testing.assert_allclose(got, np.reshape(expected, (rows, size)), rtol=1e-9, atol=1e-9)
 
 
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 70), seed=st.integers(0, 2**32 - 1))
+def test_smoothing_and_cusums_equal_their_loops(rows, seed):
+    """Exponential smoothing with a factor per row or per element, the CUSUM and the CUSUM held
+    below a ceiling, from any state, equal their one-row loops."""
+    rng = np.random.default_rng(seed)
+    shape = (rows, 2, 3)
+    factor_rows, factors = rng.random(rows), rng.random(shape)
+    steps = rng.normal(scale=2.0, size=shape)
+    start = rng.random(shape[1:]) * 6.0
+    ceiling = rng.uniform(1.0, 8.0)
+    flat = steps.reshape(rows, -1)
+    by_row = by_element = plain = held = start.reshape(-1)  # each name is rebound, never changed
+    expected = {name: [] for name in ('by_row', 'by_element', 'plain', 'held')}
+    for k in range(rows):
+        by_row = factor_rows[k] * by_row + flat[k]
+        by_element = factors[k].reshape(-1) * by_element + flat[k]
+        plain = np.maximum(0.0, plain + flat[k])
+        held = np.clip(held + flat[k], 0.0, ceiling)
+        for name, value in zip(expected, (by_row, by_element, plain, held)):
+            expected[name].append(value)
+    got = {'by_row': scalar_recursion(factor_rows, flat, start.reshape(-1)),
+           'by_element': scalar_recursion(factors.reshape(rows, -1), flat, start.reshape(-1)),
+           'plain': cusum(steps, start).reshape(rows, -1),
+           'held': bounded_cusum(steps, start, ceiling).reshape(rows, -1)}
+    for name, rows_expected in expected.items():
+        np.testing.assert_allclose(got[name], rows_expected, rtol=1e-9, atol=1e-9, err_msg=name)
+
+
 @settings(max_examples=80, deadline=None)
 @given(flags=st.lists(st.lists(st.booleans(), min_size=3, max_size=3), max_size=30),
        carry=st.lists(st.integers(0, 9), min_size=3, max_size=3), seed=st.integers(0, 999))
@@ -293,31 +323,68 @@ def test_run_lengths_and_last_values_equal_their_loops(flags, carry, seed):
 @settings(max_examples=80, deadline=None)
 @given(rows=st.integers(1, 60), seed=st.integers(0, 2**32 - 1))
 def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
-    """Evidence (CUSUM), the shared-evidence rule and release hysteresis over a block, from any
-    state it was left in, equal the one-row recursion g = max(0, g + min(z, cap) - drift)."""
+    """Evidence (the magnitude CUSUM, and the torque shift CUSUMs against a level that holds still
+    while the wheel's torque alarm is set), the shared-evidence rule and release hysteresis over a
+    block, from any state it was left in, equal the one-row recursions."""
     from youbot_fdi.fdi.settings import FdiSettings
-    settings_ = FdiSettings(release=5, shared_window=0.5)
+    settings_ = FdiSettings(release=5, shared_window=0.5, shift_time_constant=0.3)
     rng = np.random.default_rng(seed)
     shape = (len(FAMILIES), 4)
     batched = DecisionMaker(model.wheel_names, settings_, load_residual_data())
     batched._evidence = rng.random(shape) * 4.0
+    batched._shift = rng.random((2, 4)) * 8.0
+    batched._level.value, batched._level.weight = rng.normal(size=4) * 0.1, rng.choice([0.0, 0.5, 1.0], 4)
+    batched._typical_bound.value = np.log(rng.uniform(0.05, 0.2, size=4))
+    batched._typical_bound.weight = rng.choice([0.0, 0.5, 1.0], size=4)
+    batched._last_stamp = rng.choice([np.nan, -0.1])
     batched._below = rng.integers(0, 6, size=shape)
     batched.alarm = rng.random(shape) < 0.5
     batched._rise = np.where(batched._evidence >= 1.5, -rng.random(shape), batched._rise)
     evidence, below, alarm = batched._evidence.copy(), batched._below.copy(), batched.alarm.copy()
-    rise = batched._rise.copy()
+    shift, level, weight = batched._shift.copy(), batched._level.value.copy(), batched._level.weight.copy()
+    typical, typical_weight = batched._typical_bound.value.copy(), batched._typical_bound.weight.copy()
+    last, rise = batched._last_stamp, batched._rise.copy()
     z = rng.random((rows, *shape)) * rng.uniform(0.5, 4.0)
+    torque = rng.normal(size=(rows, 4)) * rng.uniform(0.05, 0.5) + (np.arange(rows) > rows // 2)[:, None] * 0.3
+    torque[rng.random((rows, 4)) < 0.05] = np.nan  # no effort recorded
+    bound = rng.uniform(0.05, 0.2, size=(rows, 4)) * np.where(rng.random((rows, 4)) < 0.1, 20.0, 1.0)
     excited = rng.random((rows, 4)) < 0.7
     stamps = np.cumsum(rng.uniform(0.01, 0.4, rows))
-    got = batched._alarms(z, excited, stamps)
+    got = batched._alarms(z, excited, stamps, torque, bound)
     s = settings_
-    level = 0.5 * s.evidence_threshold
+    level_share = 0.5 * s.evidence_threshold
+    scale = s.evidence_threshold / s.shift_threshold
     for k in range(rows):
-        was_up = evidence >= level
+        was_up = np.maximum(evidence, np.vstack([np.maximum(shift.max(axis=0) * scale, evidence[0]),
+                                                 evidence[1:]])) >= level_share
+        # the torque shift, against the level before this row
+        present = np.isfinite(torque[k])
+        x = np.where(present & (weight >= 0.5), (np.nan_to_num(torque[k]) - level) / bound[k], 0.0)
+        gain = 0.0 if np.isnan(last) else 1.0 - np.exp(-(stamps[k] - last) / s.shift_time_constant)
+        # the bound's usual size (a geometric average), and the sample's precision against it
+        precision = np.minimum(1.0, (np.exp(typical) / bound[k]) ** 2)
+        # a bound four times its usual size is a manoeuvre: the level starts afresh
+        if_steady = ~present | (typical_weight == 0) | (bound[k] <= 4.0 * np.exp(typical)) | alarm[0]
+        weight = np.where(if_steady, weight, 0.0)
+        typical_gain = gain * present
+        typical_weight = typical_weight + typical_gain * (1.0 - typical_weight)
+        typical = np.where(typical_weight > 0, typical + np.divide(
+            typical_gain, typical_weight, out=np.zeros(4), where=typical_weight > 0)
+            * (np.log(np.where(present, bound[k], 1.0)) - typical), typical)
+        gain = gain * precision * (present & ~alarm[0])
+        weight = weight + gain * (1.0 - weight)
+        inside = np.clip(np.nan_to_num(torque[k]), -bound[k], bound[k])
+        level = np.where(weight > 0, level + np.divide(gain, weight, out=np.zeros(4), where=weight > 0)
+                         * (inside - level), level)
+        last = stamps[k]
+        x = np.clip(x, -s.evidence_cap, s.evidence_cap)
+        shift = np.clip(shift + np.stack([x, -x]) - s.shift_drift, 0.0, 2.0 * s.shift_threshold)
         evidence = np.maximum(0.0, evidence + np.minimum(z[k], s.evidence_cap) - s.evidence_drift)
-        up = evidence >= level
+        judged = evidence.copy()
+        judged[0] = np.maximum(judged[0], shift.max(axis=0) * scale)
+        up = judged >= level_share
         rise = np.where(up & ~was_up, stamps[k], rise)
-        over = evidence >= s.evidence_threshold
+        over = judged >= s.evidence_threshold
         for family in (0, 2):  # torque, command: not while half the wheels rose together, nor
             for w in range(4):  # a modest score while half the wheels have evidence
                 together = sum(up[family, v] and abs(rise[family, v] - rise[family, w]) <= 0.5
@@ -328,6 +395,9 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
         alarm = np.where(over, True, np.where(below >= 5, False, alarm))
         np.testing.assert_array_equal(got[k], alarm)
     np.testing.assert_allclose(batched._evidence, evidence, atol=1e-9)
+    np.testing.assert_allclose(batched._shift, shift, atol=1e-9)
+    np.testing.assert_allclose(batched._level.value, level, atol=1e-9)
+    np.testing.assert_allclose(batched._typical_bound.value, typical, atol=1e-9)
     np.testing.assert_array_equal(batched._below, below)
 
 

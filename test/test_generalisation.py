@@ -155,6 +155,35 @@ def test_a_single_spike_is_not_an_alarm_and_a_large_fault_is_found_at_once(model
     assert _first_alarm(model, [0.3] * 5 + [100.0] * 5) == 6  # its second sample
 
 
+def _events(model, scores, interval=0.01):
+    decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
+    return [(k, e) for k, score in enumerate(scores)
+            for e in decision.update(_frame(model, 10.0 + interval * k, score))]
+
+
+def test_a_torque_shift_inside_the_bound_is_found_and_held(model):
+    """A wheel's torque residual that steps by 0.8 of its bound and stays there never exceeds the
+    bound, yet departs from its recent level: found after about threshold / (0.8 - drift)
+    samples, and held (the level does not learn a fault) until the shift ends."""
+    settings = FdiSettings()
+    steady, shifted = [0.1] * 1000, [0.9] * 1000  # 10 s: the level's memory is full
+    events = _events(model, steady + shifted + steady)
+    assert [(e.level, e.wheel) for _, e in events] == [('ERROR', 'wheel_joint_fl'), ('OK', 'wheel_joint_fl')]
+    (raised, _), (cleared, _) = events
+    expected = math.ceil(settings.shift_threshold / (0.8 - settings.shift_drift)) - 1
+    assert expected <= raised - len(steady) <= 1.3 * expected  # the level follows a little meanwhile
+    assert cleared > len(steady) + len(shifted)  # held through 10 s of the fault
+    assert cleared - len(steady) - len(shifted) <= settings.release + 30  # and the ceiling drains quickly
+
+
+def test_a_slow_drift_of_the_same_size_is_not_a_fault(model):
+    """Friction that changes as slowly as the level follows (here 0.8 bound over 30 s) is not a
+    shift, nor is a step back and forth shorter than the evidence needs."""
+    drift = list(0.1 + 0.8 * np.linspace(0.0, 1.0, 3000))
+    assert _events(model, [0.1] * 200 + drift + [0.9] * 500) == []
+    assert _events(model, ([0.1] * 50 + [0.9] * 8) * 20) == []
+
+
 def test_a_position_repeating_while_the_wheel_turns_is_a_frozen_sensor(model):
     decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
     events = []

@@ -31,12 +31,14 @@
    with the factor, when it departs from 1 by more than ``load_warn``; ``OK`` again below half
    of that. It is never a wheel fault.
 """
+import copy
 from dataclasses import dataclass
 import json
 
 import numpy as np
 
 from youbot_fdi.faults import FaultKind, LOAD_CHANGE
+from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum
 from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
 
@@ -52,6 +54,16 @@ MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name com
 EXCITED_TORQUE_SIGMAS = 3.0
 #: Fault types the classification window may still change after the alarm.
 REFINABLE = (FaultKind.TORQUE_LOSS.value, FaultKind.FRICTION.value, FaultKind.UNKNOWN.value)
+#: The torque shift CUSUMs stay below this many shift_threshold, so a shift that has ended stops
+#: counting within a few samples however long it lasted.
+SHIFT_CEILING = 2.0
+#: A torque level is a reference once this share of its memory holds samples (``shift_time_constant``
+#: x ln 2 after the start or a gap): the first samples' mean is not yet the wheel's normal.
+SHIFT_KNOWN_LEVEL = 0.5
+#: A torque bound this many times its usual size marks a manoeuvre: the operating point changes,
+#: and with it the model's bias, so the level starts afresh (and is a reference again once half
+#: its memory holds samples).
+MANOEUVRE_BOUNDS = 4.0
 BASE = None  # the component of faults not tied to one wheel
 BASE_NAME = 'base'  # how the base component is named for people
 STAMP_TOLERANCE = 1e-9  # [s] rounding allowance when a time condition is turned into a row index
@@ -108,7 +120,11 @@ class DecisionMaker:
         self.n = len(self.wheel_names)
         self.signatures = self._signatures(residual_data)
         shape = (len(FAMILIES), self.n)
-        self._evidence = np.zeros(shape)
+        self._evidence = np.zeros(shape)  # the magnitude CUSUMs
+        self._shift = np.zeros((2, self.n))  # the torque shift CUSUMs, upward and downward
+        self._level = ExponentialAverage(self.n)  # each wheel's recent torque residual [N·m]
+        self._typical_bound = ExponentialAverage(self.n)  # ... and the log of its usual bound
+        self._last_stamp = np.nan  # [s] of the last row judged
         self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
         self._below = np.zeros(shape, dtype=int)
         self.load_level = OK  # of the load condition (OK or WARN)
@@ -151,33 +167,106 @@ class DecisionMaker:
         return ((np.abs(velocity) > self.settings.stuck_speed)
                 | (np.abs(torque) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
 
-    def evidence(self, z):
+    def evidence(self, z, shift):
         """The accumulated evidence (N, families, n) after each row of scores ``z`` (N, families,
-        n), continuing from the state before; leaves the state after the last row. The CUSUM
-        recursion ``g_k = max(0, g_{k-1} + x_k)`` in closed form: ``g_k = S_k - min(-g_{-1},
-        min_{j<=k} S_j)`` with S the running sum of x."""
+        n) and torque shift scores ``shift`` (N, n), continuing from the state before; leaves the
+        state after the last row.
+
+        The magnitude CUSUM of each residual, ``min(z, cap) - evidence_drift``; for the torque
+        residuals also the CUSUMs of their shift, up and down, ``min(+-shift, cap) - shift_drift``
+        (held below ``SHIFT_CEILING`` thresholds), scaled so that ``shift_threshold`` counts as the
+        ``evidence_threshold``; the larger counts.
+        """
         s = self.settings
-        step = np.minimum(z, s.evidence_cap) - s.evidence_drift
-        if len(step) == 1:
-            g = np.maximum(0.0, self._evidence + step[0])[None]
-        else:
-            total = np.cumsum(step, axis=0)
-            g = total - np.minimum(-self._evidence, np.minimum.accumulate(total, axis=0))
-        self._evidence = g[-1]
+        g = cusum(np.minimum(z, s.evidence_cap) - s.evidence_drift, self._evidence)
+        capped = np.clip(shift, -s.evidence_cap, s.evidence_cap)
+        shifted = bounded_cusum(np.stack([capped, -capped], axis=1) - s.shift_drift, self._shift,
+                                SHIFT_CEILING * s.shift_threshold)
+        self._evidence, self._shift = g[-1].copy(), shifted[-1]
+        g[:, TORQUE] = np.maximum(g[:, TORQUE], shifted.max(axis=1)
+                                  * (s.evidence_threshold / s.shift_threshold))
         return g
 
-    def _alarms(self, z, excited, stamps):
-        """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n),
-        ``excited`` (N, n) and stamps (N,) [s], continuing the counters; leaves the state after the
+    def torque_shift(self, residual, bound, stamps, hold):
+        """Each wheel's torque residual's departure from its recent level, in bounds: ``(r_k -
+        m_{k-1}) / u_k`` (N, n), from the torque residuals ``residual`` and their bounds ``bound``
+        (N, n) [N·m] at ``stamps`` (N,) [s] (0 where it does not count). Leaves the state after the
         last row.
+
+        The level m is the exponential average over ``shift_time_constant`` of the residual
+        clipped to its bound (an excess beyond it is the magnitude CUSUM's, and a spike moves the
+        level little), each sample weighted by its precision against the wheel's usual bound,
+        ``min(1, (typical / u)^2)`` with ``typical`` the geometric average of the bound over the same
+        memory (a manoeuvre's transient, judged with a bound a hundred times wider, says little
+        about the level). It holds still for the wheels in ``hold`` (n,) (those whose torque alarm
+        is set: a fault does not become the new normal) and for missing residuals, and starts
+        afresh at a manoeuvre (a bound ``MANOEUVRE_BOUNDS`` times the usual one: the model's bias
+        changes with the operating point). Slow changes of friction or contact move it along; a
+        fault shifts the residual faster than it follows. The shift counts once half the memory
+        holds samples (``SHIFT_KNOWN_LEVEL``).
+        """
+        stamps = np.asarray(stamps, dtype=float)
+        steps = np.diff(np.concatenate([[self._last_stamp], stamps]))
+        memory = -np.expm1(-np.nan_to_num(steps) / self.settings.shift_time_constant)
+        present = np.isfinite(residual)
+        log_bound = np.log(np.where(present, bound, 1.0))
+        typical_before, typical_weight = self._typical_bound.advance(memory[:, None] * present, log_bound)
+        precision = np.minimum(1.0, np.exp(2.0 * (typical_before - log_bound)))
+        steady = ~present | (typical_weight == 0) | (log_bound - typical_before <= np.log(MANOEUVRE_BOUNDS))
+        level_before, weight_before = self._level.advance(
+            memory[:, None] * precision * (present & ~hold), np.clip(np.nan_to_num(residual), -bound, bound),
+            keep=steady | hold)
+        known = present & (weight_before >= SHIFT_KNOWN_LEVEL)
+        shift = np.divide(np.nan_to_num(residual) - level_before, bound, out=np.zeros_like(level_before),
+                          where=known)
+        self._last_stamp = stamps[-1]
+        return shift
+
+    _STATE = ('_evidence', '_shift', '_level', '_typical_bound', '_last_stamp', '_below', 'alarm',
+              '_rise')
+
+    def _alarms(self, z, excited, stamps, torque, torque_bound):
+        """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n),
+        ``excited`` (N, n), stamps (N,) [s] and the torque residuals ``torque`` with their bounds
+        ``torque_bound`` (N, n) [N·m], continuing the counters; leaves the state after the last
+        row.
+
+        The torque levels hold still for the wheels whose torque alarm is set (after the row
+        before), so the block is judged in parts within which no torque alarm changes: when one
+        changes, the rows up to it are judged again from the saved state, and the rest from there.
+        """
+        rows, start, parts = len(z), 0, []
+        while start < rows:
+            saved = {name: copy.deepcopy(getattr(self, name)) for name in self._STATE}
+            hold = self.alarm[TORQUE].copy()
+            part = slice(start, rows)
+            alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
+                                         torque_bound[part], hold)
+            changes = np.flatnonzero((alarm[:-1, TORQUE] != hold).any(axis=1))
+            if not len(changes):
+                parts.append(alarm)
+                break
+            end = start + int(changes[0]) + 1
+            for name, value in saved.items():
+                setattr(self, name, value)
+            part = slice(start, end)
+            parts.append(self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
+                                              torque_bound[part], hold))
+            start = end
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def _alarms_holding(self, z, excited, stamps, torque, torque_bound, hold):
+        """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout.
 
         Sequentially: an alarm is set while the evidence is at the threshold, cleared once
         ``below`` (excited rows since it last was) reaches ``release``, and otherwise kept. So the
         alarm after row k is decided by the latest row that set or cleared it.
         """
         threshold = self.settings.evidence_threshold
-        before = self._evidence
-        evidence = self.evidence(z)
+        before = self._evidence.copy()
+        before[TORQUE] = np.maximum(before[TORQUE], self._shift.max(axis=0)
+                                    * (threshold / self.settings.shift_threshold))
+        evidence = self.evidence(z, self.torque_shift(torque, torque_bound, stamps, hold))
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps)
@@ -376,7 +465,7 @@ class DecisionMaker:
         """Process one residual frame; returns the fault events it causes (usually none)."""
         z = frame.scores()
         alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None],
-                             [frame.stamp])
+                             [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None])
         self.samples += 1
         self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
                        np.array([frame.stamp]))
@@ -399,7 +488,8 @@ class DecisionMaker:
         if not rows:
             return []
         z = batch.scores()
-        alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp)
+        alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp,
+                             batch.values['torque'], batch.bounds['torque'])
         capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen))
         frozen = self.settings.frozen_samples
         flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
@@ -526,6 +616,10 @@ class DecisionMaker:
             events.append(FaultEvent(stamp, OK, BASE, LOAD_CHANGE, ('load_factor',), detail))
             self.load_level = OK
         self._evidence[:] = 0.0
+        self._shift[:] = 0.0
+        self._level = ExponentialAverage(self.n)
+        self._typical_bound = ExponentialAverage(self.n)
+        self._last_stamp = np.nan
         self._below[:] = 0
         self.alarm[:] = False
         self._rise[:] = NEVER

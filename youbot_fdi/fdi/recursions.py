@@ -32,18 +32,22 @@ def affine_recursion(a, b, x0):
 
 
 def scalar_recursion(a, b, x0):
-    """States of ``x_k = a_k x_{k-1} + b_k`` with a scalar ``a_k`` per row: a (N,), b (N, d),
-    x0 (d,); returns (N, d). Exponential smoothing with a varying step, as a prefix scan."""
+    """States of ``x_k = a_k x_{k-1} + b_k`` element by element: a (N,) (one factor per row) or
+    (N, d), b (N, d), x0 (d,); returns (N, d). Exponential smoothing with a varying step, as a
+    prefix scan."""
     n = len(b)
     if n == 0:
         return np.empty((0, len(x0)))
     a, b = np.array(a, dtype=float), np.array(b, dtype=float)
+    if a.ndim == 1:
+        a = a[:, None]
+    a = np.array(np.broadcast_to(a, b.shape))
     shift = 1
     while shift < n:
-        b[shift:] += a[shift:, None] * b[:-shift]
+        b[shift:] += a[shift:] * b[:-shift]
         a[shift:] *= a[:-shift]
         shift *= 2
-    return a[:, None] * x0 + b
+    return a * x0 + b
 
 
 def run_lengths(flags, carry, restart=None):
@@ -67,3 +71,59 @@ def last_true_value(flags, values, initial):
         return np.where(flags, values, initial)
     index = np.maximum.accumulate(np.where(flags, np.arange(len(flags)), -1))
     return np.where(index >= 0, np.asarray(values)[np.maximum(index, 0)], initial)
+
+
+def cusum(steps, g0):
+    """States of the CUSUM ``g_k = max(0, g_{k-1} + x_k)`` over rows of ``steps`` x (N, ...)
+    from ``g_{-1} = g0`` (...); returns (N, ...). In closed form, ``g_k = S_k - min(-g_{-1},
+    min_{j<=k} S_j)`` with S the running sum of x."""
+    if len(steps) == 1:
+        return np.maximum(0.0, g0 + steps[0])[None]
+    total = np.cumsum(steps, axis=0)
+    return total - np.minimum(-g0, np.minimum.accumulate(total, axis=0))
+
+
+def bounded_cusum(steps, g0, ceiling):
+    """States of the CUSUM held below a ceiling, ``g_k = min(ceiling, max(0, g_{k-1} + x_k))``,
+    over rows of ``steps`` x (N, ...) from ``g_{-1} = g0`` (...); returns (N, ...).
+
+    Each row is the map ``g -> clip(g + a, lo, hi)``; two such maps compose into one of the same
+    form, so the states are a prefix scan of compositions (log2(N) vectorised steps)."""
+    if len(steps) == 1:
+        return np.clip(g0 + steps[0], 0.0, ceiling)[None]
+    offset = np.array(steps, dtype=float)
+    low, high = np.zeros_like(offset), np.full_like(offset, ceiling)
+    shift = 1
+    while shift < len(offset):  # row k after row k - shift: clip(clip(g + a1, l1, h1) + a2, l2, h2)
+        later = slice(shift, None)
+        earlier = slice(None, -shift)
+        low[later], high[later], offset[later] = (
+            np.clip(low[earlier] + offset[later], low[later], high[later]),
+            np.clip(high[earlier] + offset[later], low[later], high[later]),
+            offset[earlier] + offset[later])
+        shift *= 2
+    return np.clip(g0 + offset, low, high)
+
+
+class ExponentialAverage:
+    """Exponential averages of n signals whose memory fills as samples come: ``m_k = m_{k-1} +
+    (g_k / w_k) (x_k - m_{k-1})`` with ``w_k = w_{k-1} + g_k (1 - w_{k-1})`` the share of the memory
+    that holds samples, so it starts as the plain mean of the first samples (no bias towards 0). A
+    gain g_k = 1 - exp(-dt / time constant) advances it by an interval; g_k = 0 leaves it as it is.
+    """
+
+    def __init__(self, size):
+        self.value = np.zeros(size)
+        self.weight = np.zeros(size)  # [-], 0: no sample yet
+
+    def advance(self, gain, values, keep=1.0):
+        """Take rows of ``values`` (N, n) with their gains (N, n) in [0, 1]; ``keep`` (N, n) 0
+        forgets the memory before a row. Returns the average and its weight before each row, both
+        (N, n)."""
+        weight = scalar_recursion(keep * (1.0 - gain), gain, self.weight)
+        step = np.divide(gain, weight, out=np.zeros_like(weight), where=weight > 0)
+        average = scalar_recursion(1.0 - step, step * values, self.value)
+        before = (np.concatenate([self.value[None], average[:-1]]),
+                  np.concatenate([self.weight[None], weight[:-1]]))
+        self.value, self.weight = average[-1], weight[-1]
+        return before

@@ -62,6 +62,11 @@ class FdiSettings:
     evidence_drift: float = 1.0
     evidence_cap: float = 3.0
     evidence_threshold: float = 3.0
+    # the torque residual's shift from its recent level (a fault is faster than friction drifts):
+    # g_k = max(0, g_{k-1} + min(+-shift/u, cap) - shift_drift), alarm at g >= shift_threshold
+    shift_time_constant: float = 3.0  # memory of the recent level [s]
+    shift_drift: float = 0.5  # half the shift it is made for: one bound [-]
+    shift_threshold: float = 6.0  # [-]
     release: int = 50  # excited samples without evidence to clear an alarm
     shared_window: float = 1.0  # evidence rising on half the wheels within this is shared [s]
     second_fault_score: float = 3.0  # |r|/u from which a later-rising wheel is judged on its own [-]
@@ -91,7 +96,8 @@ class FdiSettings:
                 problems.append(name)
         for name in ('observer_time_constant', 'comm_timeout', 'command_timeout',
                      'classification_window', 'load_time_constant', 'evidence_threshold',
-                     'evidence_drift', 'shared_window', 'second_fault_score'):
+                     'evidence_drift', 'shared_window', 'second_fault_score', 'shift_time_constant',
+                     'shift_threshold'):
             if getattr(self, name) <= 0:
                 problems.append(name)
         if self.load_factor_limit < 1.0:
