@@ -182,10 +182,18 @@ class DecisionMaker:
         capped = np.clip(shift, -s.evidence_cap, s.evidence_cap)
         shifted = bounded_cusum(np.stack([capped, -capped], axis=1) - s.shift_drift, self._shift,
                                 SHIFT_CEILING * s.shift_threshold)
-        self._evidence, self._shift = g[-1].copy(), shifted[-1]
-        g[:, TORQUE] = np.maximum(g[:, TORQUE], shifted.max(axis=1)
-                                  * (s.evidence_threshold / s.shift_threshold))
-        return g
+        self._evidence, self._shift = g[-1], shifted[-1]
+        return self._judged(g, shifted)
+
+    def _judged(self, magnitude, shift):
+        """The evidence judged against ``evidence_threshold`` (..., families, n): the magnitude
+        CUSUMs ``magnitude`` (..., families, n), the torque family's raised to its shift CUSUMs
+        ``shift`` (..., 2, n) scaled so that ``shift_threshold`` counts as the threshold."""
+        s = self.settings
+        judged = magnitude.copy()
+        judged[..., TORQUE, :] = np.maximum(judged[..., TORQUE, :], shift.max(axis=-2)
+                                            * (s.evidence_threshold / s.shift_threshold))
+        return judged
 
     def torque_shift(self, residual, bound, stamps, hold):
         """Each wheel's torque residual's departure from its recent level, in bounds: ``(r_k -
@@ -237,7 +245,9 @@ class DecisionMaker:
         """
         rows, start, parts = len(z), 0, []
         while start < rows:
-            saved = {name: copy.deepcopy(getattr(self, name)) for name in self._STATE}
+            # a part of one row is never judged again (the live path): nothing to save
+            saved = ({name: copy.deepcopy(getattr(self, name)) for name in self._STATE}
+                     if rows - start > 1 else {})
             hold = self.alarm[TORQUE].copy()
             part = slice(start, rows)
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
@@ -263,9 +273,7 @@ class DecisionMaker:
         alarm after row k is decided by the latest row that set or cleared it.
         """
         threshold = self.settings.evidence_threshold
-        before = self._evidence.copy()
-        before[TORQUE] = np.maximum(before[TORQUE], self._shift.max(axis=0)
-                                    * (threshold / self.settings.shift_threshold))
+        before = self._judged(self._evidence, self._shift)
         evidence = self.evidence(z, self.torque_shift(torque, torque_bound, stamps, hold))
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
