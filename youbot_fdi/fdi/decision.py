@@ -215,17 +215,18 @@ class DecisionMaker:
         """
         stamps = np.asarray(stamps, dtype=float)
         steps = np.diff(np.concatenate([[self._last_stamp], stamps]))
-        memory = -np.expm1(-np.nan_to_num(steps) / self.settings.shift_time_constant)
+        memory = -np.expm1(-np.where(np.isnan(steps), 0.0, steps) / self.settings.shift_time_constant)
         present = np.isfinite(residual)
+        residual = np.where(present, residual, 0.0)
         log_bound = np.log(np.where(present, bound, 1.0))
         typical_before, typical_weight = self._typical_bound.advance(memory[:, None] * present, log_bound)
         precision = np.minimum(1.0, np.exp(2.0 * (typical_before - log_bound)))
         steady = ~present | (typical_weight == 0) | (log_bound - typical_before <= np.log(MANOEUVRE_BOUNDS))
         level_before, weight_before = self._level.advance(
-            memory[:, None] * precision * (present & ~hold), np.clip(np.nan_to_num(residual), -bound, bound),
+            memory[:, None] * precision * (present & ~hold), np.clip(residual, -bound, bound),
             keep=steady | hold)
         known = present & (weight_before >= SHIFT_KNOWN_LEVEL)
-        shift = np.divide(np.nan_to_num(residual) - level_before, bound, out=np.zeros_like(level_before),
+        shift = np.divide(residual - level_before, bound, out=np.zeros_like(level_before),
                           where=known)
         self._last_stamp = stamps[-1]
         return shift

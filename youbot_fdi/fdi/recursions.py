@@ -38,6 +38,9 @@ def scalar_recursion(a, b, x0):
     n = len(b)
     if n == 0:
         return np.empty((0, len(x0)))
+    if n == 1:  # one row (the live path): the same ``a x0 + b`` without the scan's copies
+        a = np.asarray(a, dtype=float)
+        return (a[:, None] if a.ndim == 1 else a) * x0 + np.asarray(b, dtype=float)
     a, b = np.array(a, dtype=float), np.array(b, dtype=float)
     if a.ndim == 1:
         a = a[:, None]
@@ -123,7 +126,10 @@ class ExponentialAverage:
         weight = scalar_recursion(keep * (1.0 - gain), gain, self.weight)
         step = np.divide(gain, weight, out=np.zeros_like(weight), where=weight > 0)
         average = scalar_recursion(1.0 - step, step * values, self.value)
-        before = (np.concatenate([self.value[None], average[:-1]]),
-                  np.concatenate([self.weight[None], weight[:-1]]))
+        if len(average) == 1:
+            before = (self.value[None], self.weight[None])
+        else:
+            before = (np.concatenate([self.value[None], average[:-1]]),
+                      np.concatenate([self.weight[None], weight[:-1]]))
         self.value, self.weight = average[-1], weight[-1]
         return before
