@@ -325,7 +325,8 @@ def test_run_lengths_and_last_values_equal_their_loops(flags, carry, seed):
 def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     """Evidence (the magnitude CUSUM, and the torque shift CUSUMs against a level that holds still
     while the wheel's torque alarm is set), the shared-evidence rule and release hysteresis over a
-    block, from any state it was left in, equal the one-row recursions."""
+    block, from any state it was left in, equal the one-row recursions; so do the rows in which the
+    base breaks away from rest (no torque evidence, the level starts afresh)."""
     from youbot_fdi.fdi.settings import FdiSettings
     settings_ = FdiSettings(release=5, shared_window=0.5, shift_time_constant=0.3)
     rng = np.random.default_rng(seed)
@@ -350,7 +351,8 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     bound = rng.uniform(0.05, 0.2, size=(rows, 4)) * np.where(rng.random((rows, 4)) < 0.1, 20.0, 1.0)
     excited = rng.random((rows, 4)) < 0.7
     stamps = np.cumsum(rng.uniform(0.01, 0.4, rows))
-    got = batched._alarms(z, excited, stamps, torque, bound)
+    breaking = rng.random(rows) < 0.15
+    got = batched._alarms(z, excited, stamps, torque, bound, breaking)
     s = settings_
     level_share = 0.5 * s.evidence_threshold
     scale = s.evidence_threshold / s.shift_threshold
@@ -359,19 +361,22 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
                                                  evidence[1:]])) >= level_share
         # the torque shift, against the level before this row
         present = np.isfinite(torque[k])
-        x = np.where(present & (weight >= 0.5), (np.nan_to_num(torque[k]) - level) / bound[k], 0.0)
+        judged_now = present & ~breaking[k]
+        x = np.where(judged_now & (weight >= 0.5), (np.nan_to_num(torque[k]) - level) / bound[k], 0.0)
         gain = 0.0 if np.isnan(last) else 1.0 - np.exp(-(stamps[k] - last) / s.shift_time_constant)
         # the bound's usual size (a geometric average), and the sample's precision against it
         precision = np.minimum(1.0, (np.exp(typical) / bound[k]) ** 2)
         # a bound four times its usual size is a manoeuvre: the level starts afresh
-        if_steady = ~present | (typical_weight == 0) | (bound[k] <= 4.0 * np.exp(typical)) | alarm[0]
+        # and so does breaking away from rest
+        if_steady = ((~present | (typical_weight == 0) | (bound[k] <= 4.0 * np.exp(typical)))
+                     & ~breaking[k]) | alarm[0]
         weight = np.where(if_steady, weight, 0.0)
         typical_gain = gain * present
         typical_weight = typical_weight + typical_gain * (1.0 - typical_weight)
         typical = np.where(typical_weight > 0, typical + np.divide(
             typical_gain, typical_weight, out=np.zeros(4), where=typical_weight > 0)
             * (np.log(np.where(present, bound[k], 1.0)) - typical), typical)
-        gain = gain * precision * (present & ~alarm[0])
+        gain = gain * precision * (judged_now & ~alarm[0])
         weight = weight + gain * (1.0 - weight)
         inside = np.clip(np.nan_to_num(torque[k]), -bound[k], bound[k])
         level = np.where(weight > 0, level + np.divide(gain, weight, out=np.zeros(4), where=weight > 0)
@@ -379,7 +384,9 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
         last = stamps[k]
         x = np.clip(x, -s.evidence_cap, s.evidence_cap)
         shift = np.clip(shift + np.stack([x, -x]) - s.shift_drift, 0.0, 2.0 * s.shift_threshold)
-        evidence = np.maximum(0.0, evidence + np.minimum(z[k], s.evidence_cap) - s.evidence_drift)
+        scores = z[k].copy()
+        scores[0] = 0.0 if breaking[k] else scores[0]  # no torque evidence while breaking away
+        evidence = np.maximum(0.0, evidence + np.minimum(scores, s.evidence_cap) - s.evidence_drift)
         judged = evidence.copy()
         judged[0] = np.maximum(judged[0], shift.max(axis=0) * scale)
         up = judged >= level_share
@@ -389,7 +396,7 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
             for w in range(4):  # a modest score while half the wheels have evidence
                 together = sum(up[family, v] and abs(rise[family, v] - rise[family, w]) <= 0.5
                                for v in range(4))
-                if together >= 2 or (np.count_nonzero(up[family]) >= 2 and z[k, family, w] < 3.0):
+                if together >= 2 or (np.count_nonzero(up[family]) >= 2 and scores[family, w] < 3.0):
                     over[family, w] = False
         below = np.where(over, 0, np.where(excited[k], below + 1, below))
         alarm = np.where(over, True, np.where(below >= 5, False, alarm))
@@ -399,6 +406,33 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     np.testing.assert_allclose(batched._level.value, level, atol=1e-9)
     np.testing.assert_allclose(batched._typical_bound.value, typical, atol=1e-9)
     np.testing.assert_array_equal(batched._below, below)
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 40), seed=st.integers(0, 2**32 - 1))
+def test_breaking_away_from_rest_is_the_same_over_a_block_and_row_by_row(model, rows, seed):
+    """The rows in which the base breaks away from rest (some wheel turns, less than
+    breakaway_time after a row in which every wheel stood), over a block from any earlier rest,
+    equal those found one row at a time and the definition."""
+    from youbot_fdi.fdi.settings import FdiSettings
+    settings_ = FdiSettings()
+    rng = np.random.default_rng(seed)
+    speed = rng.choice([0.0, 0.1, 0.5, 3.0], size=(rows, 4), p=[0.4, 0.2, 0.2, 0.2])
+    stamps = 5.0 + np.cumsum(rng.uniform(0.01, 0.1, rows))
+    rest = rng.choice([-1e300, 4.9, 4.99])  # never, or a little before the block
+    block, stepped = (DecisionMaker(model.wheel_names, settings_, load_residual_data()) for _ in range(2))
+    block._rest_stamp = stepped._rest_stamp = rest
+    got = block._breaking_away(speed, stamps)
+    one_by_one = np.concatenate([stepped._breaking_away(speed[k:k + 1], stamps[k:k + 1])
+                                 for k in range(rows)])
+    expected = []
+    for k in range(rows):
+        resting = bool((np.abs(speed[k]) <= settings_.stuck_speed).all())
+        rest = stamps[k] if resting else rest
+        expected.append(not resting and stamps[k] - rest < settings_.breakaway_time)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(one_by_one, expected)
+    assert block._rest_stamp == stepped._rest_stamp == rest
 
 
 def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():

@@ -123,12 +123,12 @@ def test_identify_reports_the_coverage_of_its_bounds(calibrated, capsys):
 
 
 # ---------------------------------------------------------------------- evidence accumulation
-def _frame(model, stamp, torque_score, position_frozen=0):
+def _frame(model, stamp, torque_score, position_frozen=0, speed=2.0):
     n = len(model.wheel_names)
     values = {f: np.zeros(n) for f in FAMILIES}
     values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
     return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
-                         velocity=np.full(n, 2.0), torque=np.full(n, 0.5), command_mode='velocity',
+                         velocity=np.full(n, speed), torque=np.full(n, 0.5), command_mode='velocity',
                          command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
                          effort_frozen=np.zeros(n, dtype=int),
                          position_frozen=np.array([position_frozen, 0, 0, 0]))
@@ -159,6 +159,29 @@ def _events(model, scores, interval=0.01):
     decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
     return [(k, e) for k, score in enumerate(scores)
             for e in decision.update(_frame(model, 10.0 + interval * k, score))]
+
+
+def test_a_start_from_rest_is_not_evidence_but_the_same_excess_later_is(model):
+    """Leaving rest, wheels slip and break static friction until the base catches up (a real
+    Robotino start on rubber: one wheel at twice its current for 0.15 s): the torque excess within
+    breakaway_time after the last sample at rest adds no evidence; the same excess once the base
+    rolls is an alarm, and so is one that outlasts the breakaway."""
+    settings = FdiSettings()
+    interval = 0.03  # the Robotino's rate
+    breakaway = int(settings.breakaway_time / interval)  # samples after the last one at rest
+    rest, excess = [(0.0, 0.0)] * 20, [(2.0, 2.0)] * breakaway
+
+    def alarms(rows):
+        decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
+        return [k for k, (speed, score) in enumerate(rows)
+                for e in decision.update(_frame(model, 10.0 + interval * k, score, speed=speed))
+                if e.level == 'ERROR']
+
+    rolling = [(2.0, 0.3)] * 100
+    assert alarms(rest + excess + rolling) == []
+    assert alarms(rest + rolling[:50] + excess + rolling[50:]) != []  # the same, once rolling
+    assert alarms(rest + excess + [(2.0, 2.0)] * 5 + rolling) != []  # longer than a breakaway
+    assert alarms(rest + excess + rest + excess + rolling) == []  # each start from rest
 
 
 def test_a_torque_shift_inside_the_bound_is_found_and_held(model):

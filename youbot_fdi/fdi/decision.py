@@ -9,7 +9,10 @@
    wheel fault; so is a modest excess (score below ``second_fault_score``) while other wheels'
    evidence is up. A clear excess on a wheel that rose later is a second fault. A position
    reading that repeats exactly while the wheel is commanded and measured to turn is direct
-   evidence of a frozen sensor (``frozen_samples`` in a row), at any rate.
+   evidence of a frozen sensor (``frozen_samples`` in a row), at any rate. While the base breaks
+   away from rest (``breakaway_time`` after a sample in which every wheel stood) the torque
+   residuals add no evidence: the wheels slip and break static friction until the base has
+   caught up with them, outside the rolling contact law the model is made of.
 2. **Isolation** uses the fault signatures of the runtime residual set chosen by the structural
    analysis (``config/residuals/<model>.yaml``): a fault is a candidate when every alarming torque
    residual is in its signature, and the candidates whose torque signature has the fewest silent
@@ -31,14 +34,13 @@
    with the factor, when it departs from 1 by more than ``load_warn``; ``OK`` again below half
    of that. It is never a wheel fault.
 """
-import copy
 from dataclasses import dataclass
 import json
 
 import numpy as np
 
 from youbot_fdi.faults import FaultKind, LOAD_CHANGE
-from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum
+from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum, last_true_value
 from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
 
@@ -125,6 +127,8 @@ class DecisionMaker:
         self._level = ExponentialAverage(self.n)  # each wheel's recent torque residual [N·m]
         self._typical_bound = ExponentialAverage(self.n)  # ... and the log of its usual bound
         self._last_stamp = np.nan  # [s] of the last row judged
+        self._rest_stamp = NEVER  # [s] of the last row in which every wheel stood
+        self._pass = {}  # the states after each row of the last block judged (see _rewind)
         self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
         self._below = np.zeros(shape, dtype=int)
         self.load_level = OK  # of the load condition (OK or WARN)
@@ -167,6 +171,16 @@ class DecisionMaker:
         return ((np.abs(velocity) > self.settings.stuck_speed)
                 | (np.abs(torque) > EXCITED_TORQUE_SIGMAS * self.settings.torque_sigma))
 
+    def _breaking_away(self, velocity, stamps):
+        """Rows (N,) of speeds ``velocity`` (N, n) [rad/s] at ``stamps`` (N,) [s] in which the base
+        breaks away from rest: some wheel turns, less than ``breakaway_time`` after a row in which
+        every wheel stood (slower than ``stuck_speed``). Leaves the state after the last row."""
+        resting = (np.abs(velocity) <= self.settings.stuck_speed).all(axis=1)
+        stamps = np.asarray(stamps, dtype=float)
+        rest = last_true_value(resting, stamps, self._rest_stamp)
+        self._rest_stamp = float(rest[-1])
+        return ~resting & (stamps - rest < self.settings.breakaway_time)
+
     def evidence(self, z, shift):
         """The accumulated evidence (N, families, n) after each row of scores ``z`` (N, families,
         n) and torque shift scores ``shift`` (N, n), continuing from the state before; leaves the
@@ -182,6 +196,7 @@ class DecisionMaker:
         capped = np.clip(shift, -s.evidence_cap, s.evidence_cap)
         shifted = bounded_cusum(np.stack([capped, -capped], axis=1) - s.shift_drift, self._shift,
                                 SHIFT_CEILING * s.shift_threshold)
+        self._pass['evidence'], self._pass['shift'] = g, shifted
         self._evidence, self._shift = g[-1], shifted[-1]
         return self._judged(g, shifted)
 
@@ -195,7 +210,7 @@ class DecisionMaker:
                                             * (s.evidence_threshold / s.shift_threshold))
         return judged
 
-    def torque_shift(self, residual, bound, stamps, hold):
+    def torque_shift(self, residual, bound, stamps, hold, fresh=None):
         """Each wheel's torque residual's departure from its recent level, in bounds: ``(r_k -
         m_{k-1}) / u_k`` (N, n), from the torque residuals ``residual`` and their bounds ``bound``
         (N, n) [N·m] at ``stamps`` (N,) [s] (0 where it does not count). Leaves the state after the
@@ -209,9 +224,10 @@ class DecisionMaker:
         about the level). It holds still for the wheels in ``hold`` (n,) (those whose torque alarm
         is set: a fault does not become the new normal) and for missing residuals, and starts
         afresh at a manoeuvre (a bound ``MANOEUVRE_BOUNDS`` times the usual one: the model's bias
-        changes with the operating point). Slow changes of friction or contact move it along; a
-        fault shifts the residual faster than it follows. The shift counts once half the memory
-        holds samples (``SHIFT_KNOWN_LEVEL``).
+        changes with the operating point), and at the rows ``fresh`` (N,) in which the base breaks
+        away from rest, which add nothing to it and have no shift. Slow changes of friction or
+        contact move it along; a fault shifts the residual faster than it follows. The shift
+        counts once half the memory holds samples (``SHIFT_KNOWN_LEVEL``).
         """
         stamps = np.asarray(stamps, dtype=float)
         steps = np.diff(np.concatenate([[self._last_stamp], stamps]))
@@ -222,51 +238,61 @@ class DecisionMaker:
         typical_before, typical_weight = self._typical_bound.advance(memory[:, None] * present, log_bound)
         precision = np.minimum(1.0, np.exp(2.0 * (typical_before - log_bound)))
         steady = ~present | (typical_weight == 0) | (log_bound - typical_before <= np.log(MANOEUVRE_BOUNDS))
+        judged = present if fresh is None else present & ~fresh[:, None]
+        if fresh is not None:  # breaking away: a manoeuvre that tells nothing of the level
+            steady = steady & ~fresh[:, None]
         level_before, weight_before = self._level.advance(
-            memory[:, None] * precision * (present & ~hold), np.clip(residual, -bound, bound),
+            memory[:, None] * precision * (judged & ~hold), np.clip(residual, -bound, bound),
             keep=steady | hold)
-        known = present & (weight_before >= SHIFT_KNOWN_LEVEL)
+        known = judged & (weight_before >= SHIFT_KNOWN_LEVEL)
         shift = np.divide(residual - level_before, bound, out=np.zeros_like(level_before),
                           where=known)
+        self._pass['stamps'] = stamps
         self._last_stamp = stamps[-1]
         return shift
 
-    _STATE = ('_evidence', '_shift', '_level', '_typical_bound', '_last_stamp', '_below', 'alarm',
-              '_rise')
-
-    def _alarms(self, z, excited, stamps, torque, torque_bound):
+    def _alarms(self, z, excited, stamps, torque, torque_bound, breaking_away):
         """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n),
         ``excited`` (N, n), stamps (N,) [s] and the torque residuals ``torque`` with their bounds
         ``torque_bound`` (N, n) [N·m], continuing the counters; leaves the state after the last
-        row.
+        row. In the rows ``breaking_away`` (N,) the torque family adds no evidence (score 0) and
+        its recent levels start afresh (:meth:`torque_shift`).
 
         The torque levels hold still for the wheels whose torque alarm is set (after the row
         before), so the block is judged in parts within which no torque alarm changes: when one
-        changes, the rows up to it are judged again from the saved state, and the rest from there.
+        changes, the rows after it are judged again from the state after that row.
         """
         rows, start, parts = len(z), 0, []
+        if breaking_away.any():
+            z = z.copy()
+            z[breaking_away, TORQUE] = 0.0
         while start < rows:
-            # a part of one row is never judged again (the live path): nothing to save
-            saved = ({name: copy.deepcopy(getattr(self, name)) for name in self._STATE}
-                     if rows - start > 1 else {})
             hold = self.alarm[TORQUE].copy()
             part = slice(start, rows)
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
-                                         torque_bound[part], hold)
+                                         torque_bound[part], hold, breaking_away[part])
             changes = np.flatnonzero((alarm[:-1, TORQUE] != hold).any(axis=1))
             if not len(changes):
                 parts.append(alarm)
                 break
-            end = start + int(changes[0]) + 1
-            for name, value in saved.items():
-                setattr(self, name, value)
-            part = slice(start, end)
-            parts.append(self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
-                                              torque_bound[part], hold))
-            start = end
+            changed = int(changes[0])  # judged alike with the old hold up to here
+            parts.append(alarm[:changed + 1])
+            self._rewind(changed)
+            start += changed + 1
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
-    def _alarms_holding(self, z, excited, stamps, torque, torque_bound, hold):
+    def _rewind(self, row):
+        """Go back to the state after ``row`` of the last block :meth:`_alarms_holding` judged
+        (from the per-row states it kept in ``_pass``)."""
+        judged = self._pass
+        self._evidence, self._shift = judged['evidence'][row], judged['shift'][row]
+        self._level.rewind(row)
+        self._typical_bound.rewind(row)
+        self._last_stamp = judged['stamps'][row]
+        self._rise[SHARED_FAMILIES] = judged['rise'][row]
+        self._below, self.alarm = judged['below'][row], judged['alarm'][row]
+
+    def _alarms_holding(self, z, excited, stamps, torque, torque_bound, hold, fresh):
         """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout.
 
         Sequentially: an alarm is set while the evidence is at the threshold, cleared once
@@ -275,7 +301,7 @@ class DecisionMaker:
         """
         threshold = self.settings.evidence_threshold
         before = self._judged(self._evidence, self._shift)
-        evidence = self.evidence(z, self.torque_shift(torque, torque_bound, stamps, hold))
+        evidence = self.evidence(z, self.torque_shift(torque, torque_bound, stamps, hold, fresh))
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps)
@@ -291,6 +317,7 @@ class DecisionMaker:
         last_set = np.maximum.accumulate(np.where(over, index, -1), axis=0)
         last_clear = np.maximum.accumulate(np.where(below >= self.settings.release, index, -1), axis=0)
         alarm = np.where(last_set > last_clear, True, np.where(last_clear > last_set, False, self.alarm))
+        self._pass['below'], self._pass['alarm'] = below, alarm
         self._below, self.alarm = below[-1], alarm[-1]
         return alarm
 
@@ -312,6 +339,7 @@ class DecisionMaker:
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
         rise = np.maximum(np.maximum.accumulate(rise, axis=0), self._rise[SHARED_FAMILIES])
+        self._pass['rise'] = rise
         self._rise[SHARED_FAMILIES] = rise[-1]
         together = (up[..., None, :]
                     & (np.abs(rise[..., :, None] - rise[..., None, :]) <= s.shared_window))
@@ -474,7 +502,8 @@ class DecisionMaker:
         """Process one residual frame; returns the fault events it causes (usually none)."""
         z = frame.scores()
         alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None],
-                             [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None])
+                             [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None],
+                             self._breaking_away(frame.velocity[None], [frame.stamp]))
         self.samples += 1
         self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
                        np.array([frame.stamp]))
@@ -498,7 +527,8 @@ class DecisionMaker:
             return []
         z = batch.scores()
         alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp,
-                             batch.values['torque'], batch.bounds['torque'])
+                             batch.values['torque'], batch.bounds['torque'],
+                             self._breaking_away(batch.velocity, batch.stamp))
         capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen))
         frozen = self.settings.frozen_samples
         flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
@@ -629,6 +659,7 @@ class DecisionMaker:
         self._level = ExponentialAverage(self.n)
         self._typical_bound = ExponentialAverage(self.n)
         self._last_stamp = np.nan
+        self._rest_stamp = NEVER
         self._below[:] = 0
         self.alarm[:] = False
         self._rise[:] = NEVER

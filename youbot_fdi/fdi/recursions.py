@@ -131,5 +131,11 @@ class ExponentialAverage:
         else:
             before = (np.concatenate([self.value[None], average[:-1]]),
                       np.concatenate([self.weight[None], weight[:-1]]))
+        self._after = (average, weight)
         self.value, self.weight = average[-1], weight[-1]
         return before
+
+    def rewind(self, row):
+        """Go back to the state after ``row`` of the last :meth:`advance`."""
+        average, weight = self._after
+        self.value, self.weight = average[row], weight[row]

@@ -72,6 +72,9 @@ class FdiSettings:
     second_fault_score: float = 3.0  # |r|/u from which a later-rising wheel is judged on its own [-]
     frozen_samples: int = 3  # identical readings that count as frozen
     stuck_speed: float = 0.3  # a wheel slower than this with its current up is stuck [rad/s]
+    # torque evidence is not accumulated this long after the base leaves rest (every wheel slower
+    # than stuck_speed): wheels slip and break static friction until the base catches up [s]
+    breakaway_time: float = 0.2
     comm_timeout: float = 0.2  # a gap in /joint_states longer than this is comm_loss [s] ...
     comm_timeout_intervals: float = 15.0  # ... and longer than this many nominal sample intervals
     sample_interval: float = 0.0  # the nominal sample interval (identify measures it; 0: unknown) [s]
