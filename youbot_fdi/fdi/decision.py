@@ -210,7 +210,7 @@ class DecisionMaker:
                                             * (s.evidence_threshold / s.shift_threshold))
         return judged
 
-    def torque_shift(self, residual, bound, stamps, hold, fresh=None):
+    def torque_shift(self, residual, bound, stamps, hold, fresh):
         """Each wheel's torque residual's departure from its recent level, in bounds: ``(r_k -
         m_{k-1}) / u_k`` (N, n), from the torque residuals ``residual`` and their bounds ``bound``
         (N, n) [N·m] at ``stamps`` (N,) [s] (0 where it does not count). Leaves the state after the
@@ -237,10 +237,10 @@ class DecisionMaker:
         log_bound = np.log(np.where(present, bound, 1.0))
         typical_before, typical_weight = self._typical_bound.advance(memory[:, None] * present, log_bound)
         precision = np.minimum(1.0, np.exp(2.0 * (typical_before - log_bound)))
-        steady = ~present | (typical_weight == 0) | (log_bound - typical_before <= np.log(MANOEUVRE_BOUNDS))
-        judged = present if fresh is None else present & ~fresh[:, None]
-        if fresh is not None:  # breaking away: a manoeuvre that tells nothing of the level
-            steady = steady & ~fresh[:, None]
+        breaking_away = fresh[:, None]  # a manoeuvre that tells nothing of the level
+        usual = log_bound - typical_before <= np.log(MANOEUVRE_BOUNDS)
+        steady = (~present | (typical_weight == 0) | usual) & ~breaking_away
+        judged = present & ~breaking_away
         level_before, weight_before = self._level.advance(
             memory[:, None] * precision * (judged & ~hold), np.clip(residual, -bound, bound),
             keep=steady | hold)
@@ -284,13 +284,13 @@ class DecisionMaker:
     def _rewind(self, row):
         """Go back to the state after ``row`` of the last block :meth:`_alarms_holding` judged
         (from the per-row states it kept in ``_pass``)."""
-        judged = self._pass
-        self._evidence, self._shift = judged['evidence'][row], judged['shift'][row]
+        states = self._pass
+        self._evidence, self._shift = states['evidence'][row], states['shift'][row]
         self._level.rewind(row)
         self._typical_bound.rewind(row)
-        self._last_stamp = judged['stamps'][row]
-        self._rise[SHARED_FAMILIES] = judged['rise'][row]
-        self._below, self.alarm = judged['below'][row], judged['alarm'][row]
+        self._last_stamp = states['stamps'][row]
+        self._rise[SHARED_FAMILIES] = states['rise'][row]
+        self._below, self.alarm = states['below'][row], states['alarm'][row]
 
     def _alarms_holding(self, z, excited, stamps, torque, torque_bound, hold, fresh):
         """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout.

@@ -118,6 +118,7 @@ class ExponentialAverage:
     def __init__(self, size):
         self.value = np.zeros(size)
         self.weight = np.zeros(size)  # [-], 0: no sample yet
+        self._after = None  # (average, weight) after each row of the last advance, for rewind
 
     def advance(self, gain, values, keep=1.0):
         """Take rows of ``values`` (N, n) with their gains (N, n) in [0, 1]; ``keep`` (N, n) 0
