@@ -160,17 +160,18 @@ def test_reactions_act_through_the_topics(fault, wheel, monkeypatch):
 
 
 def test_demo_plan_carries_fault_magnitudes_and_bridge_limits():
-    """demo --torque-loss-gain/--friction-factor reach the virtual base, --max-wheel-speed the
-    bridge (with --react); a magnitude no base can have is refused."""
+    """demo --torque-loss-gain/--friction-factor reach the virtual base, --max-wheel-speed and
+    --degraded-max-wheel-speed the bridge (with --react); a magnitude no base can have is refused."""
     import argparse
-    from youbot_fdi.cli.demo import plan_fault_settings
+    from youbot_fdi.cli.demo import bridge_overrides, plan_fault_settings
     from youbot_fdi.errors import ConfigError
     from youbot_fdi.tmcm.virtual_base import VirtualBaseSettings
-    args = argparse.Namespace(torque_loss_gain=0.0, friction_factor=None)
+    args = argparse.Namespace(torque_loss_gain=0.0, friction_factor=None, max_wheel_speed=None,
+                              degraded_max_wheel_speed=20.0)
     assert plan_fault_settings(args) == {'torque_loss_gain': 0.0}
     plan = DemoPlan(SCRIPT, 'friction', 'wheel_joint_fl', 1.0, react=True,
-                    bridge_overrides=(('max_wheel_speed', 20.0),))
-    assert plan.bridge_parameters() == {'max_wheel_speed': 20.0, 'react': True}
+                    bridge_overrides=bridge_overrides(args))
+    assert plan.bridge_parameters() == {'degraded_max_wheel_speed': 20.0, 'react': True}
     assert DemoPlan(SCRIPT, None, 'wheel_joint_fl', 1.0).bridge_parameters() == {}
     with pytest.raises(ConfigError, match='torque_loss_gain'):
         VirtualBaseSettings(torque_loss_gain=1.5).validate()

@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 
+from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import FaultEvent
 from youbot_fdi.fdi.reactions import ReactionSettings, Reactor
@@ -71,7 +72,7 @@ def test_reactor_follows_the_policy_and_reset_ends_it(tmp_path):
                                                 _reactions_yaml(tmp_path, react=True)))
     started = reactor.on_event(event('ERROR', 'wheel_joint_fl', 'torque_loss'))
     assert [(r.level, r.action, r.wheel) for r in started] == [('INFO', 'degrade', 'wheel_joint_fl')]
-    assert reactor.degraded == ['wheel_joint_fl'] and not reactor.stopped
+    assert reactor.degraded == ['wheel_joint_fl'] and not reactor.stopped and reactor.driving_degraded
     slow = 0.3 * TWIST  # within the degraded wheel-speed cap: followed exactly
     np.testing.assert_allclose(kinematics.forward(reactor.wheel_speeds(slow)), slow, atol=1e-12)
     fast = reactor.wheel_speeds(10 * TWIST)  # capped as a whole: same direction, slower
@@ -84,10 +85,10 @@ def test_reactor_follows_the_policy_and_reset_ends_it(tmp_path):
     reactor.on_event(event('ERROR', 'wheel_joint_br', 'encoder_freeze', 2.5))
     assert reactor.substituted == ['wheel_joint_br']
     # its module's loop runs on the frozen reading: motor off, driven around like a lost wheel
-    assert reactor.degraded == ['wheel_joint_br']
+    assert reactor.degraded == ['wheel_joint_br'] and reactor.driving_degraded
     assert reactor.motors_to_switch_off() == ['wheel_joint_br']
     runaway = reactor.on_event(event('ERROR', 'wheel_joint_bl', 'runaway', 3.0))
-    assert runaway[0].action == 'motor_off' and reactor.stopped
+    assert runaway[0].action == 'motor_off' and reactor.stopped and not reactor.driving_degraded
     assert sorted(reactor.motors_to_switch_off()) == ['wheel_joint_bl', 'wheel_joint_br']
     np.testing.assert_array_equal(reactor.wheel_speeds(TWIST), np.zeros(4))
     assert reactor.on_event(event('ERROR', None, 'comm_loss'))[0].action == 'stop'
@@ -116,7 +117,6 @@ def test_policy_is_validated_and_off_by_default():
 
 def _reactions_yaml(folder, react):
     """config/reactions.yaml with ``react`` set (the shipped file, parsed as a node would)."""
-    from youbot_fdi.config_paths import config_dir
     text = (config_dir() / 'reactions.yaml').read_text().replace('react: false', f'react: {str(react).lower()}')
     path = folder / 'reactions.yaml'
     path.write_text(text)
@@ -152,12 +152,15 @@ def _degraded_drive(kinematics_model, fault, react, cap, **magnitudes):
                                                ('friction', {'friction_factor': 30.0})])
 def test_degraded_driving_halves_the_tracking_error_of_a_wheel_that_cannot_follow(fault, magnitudes):
     """A dead motor or a dragging wheel in velocity mode: the other three wheels, solved given its
-    measured speed, carry the base; at least half the tracking error goes. In this model (the body
-    twist is the least-squares twist of all wheels) they run up to twice their rolling speed, so
-    the cap matters: at 10 rad/s the base is slowed down (docs/nodes.md)."""
+    measured speed, carry the base; at least half the tracking error goes under the configured
+    degraded cap (config/reactions.yaml). In this model (the body twist is the least-squares twist
+    of all wheels) they run up to twice their rolling speed, so the cap matters: at the nominal
+    10 rad/s the base is slowed down (docs/nodes.md)."""
     model = load_model('youbot')
-    without = _degraded_drive(model, fault, False, 20.0, **magnitudes)
-    with_reaction = _degraded_drive(model, fault, True, 20.0, **magnitudes)
+    cap = load_settings(ReactionSettings, 'kinematics_bridge',
+                        config_dir() / 'reactions.yaml').degraded_max_wheel_speed
+    without = _degraded_drive(model, fault, False, cap, **magnitudes)
+    with_reaction = _degraded_drive(model, fault, True, cap, **magnitudes)
     assert with_reaction <= 0.5 * without
     capped = _degraded_drive(model, fault, True, 10.0, **magnitudes)
     assert capped > with_reaction

@@ -39,8 +39,12 @@ def add_parser(subparsers):
                         help='viscous friction multiplier under friction (default: '
                              'config/virtual_youbot.yaml, 6)')
     parser.add_argument('--max-wheel-speed', type=float, metavar='W',
-                        help="the kinematics bridge's wheel-speed limit, degraded driving's too "
-                             '[rad/s] (default: config/kinematics_bridge.yaml, 10, the URDF limit)')
+                        help="the kinematics bridge's wheel-speed limit [rad/s] (default: "
+                             'config/kinematics_bridge.yaml, 10, the URDF limit)')
+    parser.add_argument('--degraded-max-wheel-speed', type=float, metavar='W',
+                        help="its limit while driving degraded (--react) [rad/s] (default: "
+                             "config/reactions.yaml, 16.2, the firmware's maximum positioning "
+                             'velocity)')
     parser.add_argument('--react', action='store_true',
                         help='the kinematics bridge applies the fault reactions of '
                              'config/reactions.yaml (motor off, stop, degraded driving, '
@@ -48,7 +52,8 @@ def add_parser(subparsers):
     parser.add_argument('--summary', metavar='S.json',
                         help="write the run's figures as JSON (detection delay, reactions, RMS "
                              "body-velocity tracking error from the fault to the end against the "
-                             "simulator's true velocity), to compare runs with and without --react")
+                             "simulator's true velocity; a fault-free drive from --at, the floor), to "
+                             'compare runs with and without --react')
     parser.add_argument('--quiet', action='store_true', help='only the summary')
     parser.set_defaults(run=run)
 
@@ -62,15 +67,23 @@ def write_summary(path, args, run, alarms, tracking):
         'fault': args.fault, 'wheel': args.wheel, 'at': args.at, 'layout': args.layout,
         'react': args.react, 'fault_settings': plan_fault_settings(args),
         'max_wheel_speed': args.max_wheel_speed,
+        'degraded_max_wheel_speed': args.degraded_max_wheel_speed,
         'detected': first is not None and first.wheel == args.wheel,
         'detection_delay_s': None if first is None else round(first.stamp - run.injected_at, 4),
         'alarms': [e.to_dict() for e in alarms],
         'reactions': [r.to_dict() for r in run.reactions],
         'tracking_rms_linear_mps': None if tracking is None else round(tracking[0], 5),
         'tracking_rms_angular_radps': None if tracking is None else round(tracking[1], 5),
-        'tracking_from': 'fault injection' if run.injected_at is not None else 'drive start',
+        'tracking_from': ('fault injection' if run.injected_at is not None else
+                          f'{args.at:g} s into the drive' if args.fault == NONE else 'drive start'),
     }
     Path(path).write_text(json.dumps(summary, indent=2) + '\n')
+
+
+def bridge_overrides(args):
+    """The kinematics bridge's (name, value) parameter overrides of the command line."""
+    return tuple((name, getattr(args, name)) for name in ('max_wheel_speed', 'degraded_max_wheel_speed')
+                 if getattr(args, name) is not None)
 
 
 def plan_fault_settings(args):
@@ -87,9 +100,7 @@ def run(args):
     plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record,
                     layout=args.layout, react=args.react,
                     base_overrides=tuple(plan_fault_settings(args).items()),
-                    bridge_overrides=() if args.max_wheel_speed is None else (
-                        ('max_wheel_speed', args.max_wheel_speed),
-                        ('degraded_max_wheel_speed', args.max_wheel_speed)))
+                    bridge_overrides=bridge_overrides(args))
     print(f'youbot-fdi demo ({args.layout} FDI nodes): {script.duration:.1f} s drive, '
           + (f'{fault} on {args.wheel} at {args.at:g} s' if fault else 'no fault injected'), flush=True)
     run = run_demo(plan, args.events)
@@ -111,9 +122,13 @@ def run(args):
         others = [e for e in alarms if e.wheel != args.wheel]
         if others:
             print(f'  other alarms: {[(e.wheel, e.fault) for e in others]}')
-    tracking = run.tracking_error(injected_at if injected_at is not None else run.start)
+    # A fault-free drive is measured over the window a fault at --at would be: the floor it sets.
+    since = (injected_at if injected_at is not None
+             else run.start + (args.at if fault is None else 0.0))
+    tracking = run.tracking_error(since)
     if tracking is not None:
-        span = 'after the fault' if injected_at is not None else 'over the drive'
+        span = ('after the fault' if injected_at is not None else
+                f'from {args.at:g} s (where --at puts a fault)' if fault is None else 'over the drive')
         print(f'  RMS tracking error {span}: {tracking[0]:.3f} m/s, {tracking[1]:.3f} rad/s')
     if run.reactions:
         print('  reactions: ' + ', '.join(f'{r.action} ({r.wheel or "base"})' for r in run.reactions))

@@ -37,7 +37,10 @@ class ReactionSettings:
     on_friction: str = DEGRADE
     on_encoder_freeze: str = SUBSTITUTE
     on_unknown: str = STOP
-    degraded_max_wheel_speed: float = 10.0  # wheel-speed cap while driving degraded [rad/s]
+    #: wheel-speed cap while driving degraded [rad/s], in place of the bridge's ``max_wheel_speed``:
+    #: the healthy wheels turn faster than their rolling speed to carry a lost one. Default: the
+    #: firmware's factory maximum positioning velocity (4000 rpm motor, TMCM-1632 base.cfg).
+    degraded_max_wheel_speed: float = 16.2
     motor_off_service: str = '/driver_shim/switch_off_motor'  # + '_<wheel suffix>'
 
     def validate(self, source='<settings>'):
@@ -108,6 +111,12 @@ class Reactor:
     def degraded(self):
         """Wheel names driven around (degraded driving), in wheel order."""
         return self._lost(DEGRADE)
+
+    @property
+    def driving_degraded(self):
+        """True while the other wheels carry a lost wheel (degraded or substituted) and the base
+        is not stopped: the wheel-speed cap is ``degraded_max_wheel_speed``."""
+        return self._around[DEGRADE] is not None and not self.stopped
 
     @property
     def substituted(self):

@@ -1,6 +1,7 @@
 """``kinematics_bridge`` node: /cmd_vel -> /wheel_commands (inverse kinematics), /joint_states -> /odom.
 
-Wheel speeds are limited to ``max_wheel_speed``: a faster command is scaled down as a whole, so the
+Wheel speeds are limited to ``max_wheel_speed`` (``degraded_max_wheel_speed`` of
+``config/reactions.yaml`` while driving degraded): a faster command is scaled down as a whole, so the
 base keeps its direction. Odometry integrates the measured wheel angles (exact SE(2) steps) and is
 published in frame ``odom`` with child ``base_footprint`` (REP-105, like the youBot driver).
 
@@ -79,8 +80,11 @@ class KinematicsBridgeNode(Node):
         self.publish_speeds(self.reactor.wheel_speeds(twist, self._measured))
 
     def publish_speeds(self, speeds):
-        """/wheel_commands for wheel speeds (kinematic convention), within ``max_wheel_speed``."""
-        speeds = limit_wheel_speeds(speeds, self.max_wheel_speed)
+        """/wheel_commands for wheel speeds (kinematic convention), within ``max_wheel_speed``, or
+        ``degraded_max_wheel_speed`` while the other wheels carry a lost one."""
+        cap = (self.reactor.settings.degraded_max_wheel_speed if self.reactor.driving_degraded
+               else self.max_wheel_speed)
+        speeds = limit_wheel_speeds(speeds, cap)
         self.command_pub.publish(joint_state(now_seconds(self), self.model.wheel_names,
                                              velocity=self.kinematics.to_driver(speeds)))
 
