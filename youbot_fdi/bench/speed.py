@@ -271,9 +271,9 @@ def bench_learned():
     observer adds per sample), against one numpy tanh of four values."""
     from youbot_fdi.fdi.learned import FEATURES, TorqueCorrection
     rng = np.random.default_rng(0)
-    correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.1), 0.05)
-    speed = rng.normal(size=4)
-    value = 1e6 / _rate(lambda: correction(speed))
+    correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.1), 0.05, np.full(4, 0.1))
+    speed, acceleration = rng.normal(size=4), rng.normal(size=4)
+    value = 1e6 / _rate(lambda: correction(speed, acceleration))
     baseline = 1e6 / _rate(lambda: np.tanh(speed))
     return BenchResult('learned correction: one sample, 4 wheels', value, 'us', 'np.tanh of 4 values',
                        baseline, f'target <= {LEARNED_TARGET_US:g} us')

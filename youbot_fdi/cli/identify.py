@@ -16,16 +16,17 @@ def add_parser(subparsers):
                     'per wheel) and learn the residual noise floors the thresholds use. Writes a '
                     'parameter file for `replay --params`. A damaged recording (cut short) is used as '
                     'far as it can be read: exit status 3, with a line saying what was lost. Unless '
-                    '--physics-only, also learns a correction of the physics (friction by direction '
-                    'of travel, youbot_fdi/fdi/learned.py) and fits the bounds to the corrected '
-                    'residuals.')
+                    '--physics-only, also learns a correction of the physics where it holds out of '
+                    'sample (friction by direction of travel, a per-wheel share of inertia; '
+                    'youbot_fdi/fdi/learned.py); the bounds stay those of the physics residuals.')
     parser.add_argument('bag', help='rosbag2 directory of nominal (fault-free) driving')
     parser.add_argument('--output', required=True, help='parameter file to write (YAML)')
     parser.add_argument('--profile', default='youbot', help='prior profile (default: youbot)')
     parser.add_argument('--no-gains', action='store_true', help='do not fit the firmware PI gains and input delay')
     parser.add_argument('--physics-only', action='store_true',
                         help='do not learn corrections of the physics (the direction-dependent '
-                             'friction the model misses); bounds from the physics residuals alone')
+                             'friction and the inertia the model misses); bounds from the physics '
+                             'residuals alone')
     parser.add_argument('--plot', metavar='FILE', help='write the friction sweep (Fig. 5.10) here')
     parser.set_defaults(run=run)
 
@@ -73,7 +74,7 @@ def run(args):
             print(f'  learning: {note}')
         spread = learning['residual_rms']
         if spread:
-            print('  learned correction (friction by direction and speed): residual RMS physics -> '
+            print('  learned correction (friction by direction and speed, inertia share): residual RMS physics -> '
                   'learned: ' + ', '.join(f'{family} {spread["physics"][family]:.4g} -> '
                                           f'{spread["learned"][family]:.4g}'
                                           for family in spread['physics']))

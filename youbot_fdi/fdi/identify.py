@@ -36,7 +36,7 @@ import scipy.sparse
 
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
-from youbot_fdi.fdi.learned import fit_torque_correction
+from youbot_fdi.fdi.learned import fit_torque_correction, inertial_feature
 from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.dynamics import rolling_share
@@ -367,8 +367,14 @@ def learn_corrections(model, arrays, settings, physics):
     'learned': {family: RMS over the recording and the wheels}}, the same twice when nothing is
     learned)."""
     index = np.searchsorted(arrays.time, physics.stamp)
-    mean_speed = 0.5 * (arrays.velocity[index] + arrays.velocity[np.maximum(index - 1, 0)])
-    correction, notes = fit_torque_correction(mean_speed, physics.values['torque'],
+    before = np.maximum(index - 1, 0)
+    mean_speed = 0.5 * (arrays.velocity[index] + arrays.velocity[before])
+    interval = (arrays.time[index] - arrays.time[before])[:, None]
+    acceleration = inertial_feature(
+        np.where(interval > 0.0, (arrays.velocity[index] - arrays.velocity[before])
+                 / np.where(interval > 0.0, interval, 1.0), np.nan),
+        arrays.torque[index], arrays.torque[before], model.drive.max_torque)
+    correction, notes = fit_torque_correction(mean_speed, acceleration, physics.values['torque'],
                                               model.dynamics.parameters.coulomb_velocity_scale,
                                               settings.torque_sigma)
     if correction is None:  # the learned variant is the physics one

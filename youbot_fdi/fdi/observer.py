@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from youbot_fdi.fdi.learned import TorqueCorrection
+from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection
 from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, scalar_recursion
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, VELOCITY
@@ -159,6 +159,7 @@ class ModelObserver:
         #: one firmware period of the saturating loop: speed' = [phi | gamma k_t] [speed; current]
         self._period_map = np.hstack([self._phi1, self._gamma1 * self.torque_per_amp])
         self.max_current = drive.max_current
+        self.max_torque = drive.max_torque  # [N·m] at the wheel
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
@@ -383,19 +384,23 @@ class ModelObserver:
 
     # ------------------------------------------------------------------ the model's torque
     # Shapes (n,) for one sample or (N, n) for a block.
-    def _explained(self, velocity, prev_velocity, phi, gamma_inv):
+    def _explained(self, velocity, prev_velocity, phi, gamma_inv, step, torque, prev_torque):
         """(explained torque, the wheel's friction level, Coulomb torque, unseen friction) over one
-        interval: the torque the exactly discretised dynamics need for the measured speed change,
-        with the learned correction (if any) in the explained and Coulomb torques only; the
+        interval of ``step`` [s] (a scalar, or (N, 1)) between measured torques ``prev_torque``
+        and ``torque`` (either sign: only their size is used): the torque the exactly discretised dynamics
+        need for the measured speed change, with the learned correction (if any): its friction part
+        in the explained and Coulomb torques, its inertial part in the explained torque only; the
         friction level is viscous plus the Coulomb level of :meth:`_coulomb` (the physics friction
         without the contact law's share), the unseen friction as :meth:`_coulomb` gives it."""
         mean_speed = 0.5 * (velocity + prev_velocity)
         coulomb, level, unseen = self._coulomb(mean_speed)
         friction = self.friction * mean_speed + level
-        if self.correction is not None:  # learned friction the physics misses (see fdi/learned.py)
-            coulomb = coulomb + self.correction(mean_speed)
-        explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity)) + coulomb
-        return explained, friction, coulomb, unseen
+        explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity))
+        if self.correction is not None:  # what the physics misses (see fdi/learned.py)
+            coulomb = coulomb + self.correction.friction(mean_speed)
+            explained = explained + self.correction.inertial(inertial_feature(
+                (velocity - prev_velocity) / step, torque, prev_torque, self.max_torque))
+        return explained + coulomb, friction, coulomb, unseen
 
     def _load_votes(self, mean_torque, explained, friction):
         """Per wheel, (load part: measured minus inertial torque, friction level), zero where the
@@ -451,7 +456,8 @@ class ModelObserver:
             return None
         last_stamp, last_velocity, last_torque = self._last
         phi, gamma, gamma_inv = self._discrete(dt)
-        explained, friction, coulomb, unseen = self._explained(velocity, last_velocity, phi, gamma_inv)
+        explained, friction, coulomb, unseen = self._explained(velocity, last_velocity, phi, gamma_inv, dt,
+                                                               torque, last_torque)
         torque = signed_torque(torque, explained, self.signed_effort)
         mean_torque = 0.5 * (torque + last_torque)
         keep = self._smoothing(dt)
@@ -509,7 +515,9 @@ class ModelObserver:
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]
-        explained, friction, coulomb, unseen = self._explained(velocity, prev_velocity, phi, gamma_inv)
+        explained, friction, coulomb, unseen = self._explained(
+            velocity, prev_velocity, phi, gamma_inv, step, torque,
+            np.concatenate([last_torque[None], torque[:-1]]))
         torque = signed_torque(torque, explained, self.signed_effort)
         if not self.signed_effort and restart.any():  # as _restart signs it
             torque[restart] = signed_torque(torque[restart], velocity[restart], False)
