@@ -58,6 +58,17 @@ def add_parser(subparsers):
     parser.set_defaults(run=run)
 
 
+def tracking_window(args, run):
+    """(start [s], what it is) of the tracking error's window: from the fault's injection; a
+    fault-free drive from ``--at``, the window a fault there would have (the floor it sets); a
+    fault never injected over the whole drive."""
+    if run.injected_at is not None:
+        return run.injected_at, 'fault injection'
+    if args.fault == NONE:
+        return run.start + args.at, f'{args.at:g} s into the drive'
+    return run.start, 'drive start'
+
+
 def write_summary(path, args, run, alarms, tracking):
     """The run's figures as one JSON object."""
     import json
@@ -74,8 +85,7 @@ def write_summary(path, args, run, alarms, tracking):
         'reactions': [r.to_dict() for r in run.reactions],
         'tracking_rms_linear_mps': None if tracking is None else round(tracking[0], 5),
         'tracking_rms_angular_radps': None if tracking is None else round(tracking[1], 5),
-        'tracking_from': ('fault injection' if run.injected_at is not None else
-                          f'{args.at:g} s into the drive' if args.fault == NONE else 'drive start'),
+        'tracking_from': tracking_window(args, run)[1],
     }
     Path(path).write_text(json.dumps(summary, indent=2) + '\n')
 
@@ -122,14 +132,10 @@ def run(args):
         others = [e for e in alarms if e.wheel != args.wheel]
         if others:
             print(f'  other alarms: {[(e.wheel, e.fault) for e in others]}')
-    # A fault-free drive is measured over the window a fault at --at would be: the floor it sets.
-    since = (injected_at if injected_at is not None
-             else run.start + (args.at if fault is None else 0.0))
+    since, window = tracking_window(args, run)
     tracking = run.tracking_error(since)
     if tracking is not None:
-        span = ('after the fault' if injected_at is not None else
-                f'from {args.at:g} s (where --at puts a fault)' if fault is None else 'over the drive')
-        print(f'  RMS tracking error {span}: {tracking[0]:.3f} m/s, {tracking[1]:.3f} rad/s')
+        print(f'  RMS tracking error from {window}: {tracking[0]:.3f} m/s, {tracking[1]:.3f} rad/s')
     if run.reactions:
         print('  reactions: ' + ', '.join(f'{r.action} ({r.wheel or "base"})' for r in run.reactions))
     if args.summary:

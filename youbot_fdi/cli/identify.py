@@ -74,8 +74,8 @@ def run(args):
             print(f'  learning: {note}')
         spread = learning['residual_rms']
         if spread:
-            print('  learned correction (friction by direction and speed, inertia share): residual RMS physics -> '
-                  'learned: ' + ', '.join(f'{family} {spread["physics"][family]:.4g} -> '
+            print('  learned correction (friction by direction and speed, inertia share): '
+                  'residual RMS physics -> learned: ' + ', '.join(f'{family} {spread["physics"][family]:.4g} -> '
                                           f'{spread["learned"][family]:.4g}'
                                           for family in spread['physics']))
     print('  bound floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()

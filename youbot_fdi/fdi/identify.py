@@ -369,10 +369,10 @@ def learn_corrections(model, arrays, settings, physics):
     index = np.searchsorted(arrays.time, physics.stamp)
     before = np.maximum(index - 1, 0)
     mean_speed = 0.5 * (arrays.velocity[index] + arrays.velocity[before])
+    change = arrays.velocity[index] - arrays.velocity[before]
     interval = (arrays.time[index] - arrays.time[before])[:, None]
     acceleration = inertial_feature(
-        np.where(interval > 0.0, (arrays.velocity[index] - arrays.velocity[before])
-                 / np.where(interval > 0.0, interval, 1.0), np.nan),
+        np.divide(change, interval, out=np.full_like(change, np.nan), where=interval > 0.0),
         arrays.torque[index], arrays.torque[before], model.drive.max_torque)
     correction, notes = fit_torque_correction(mean_speed, acceleration, physics.values['torque'],
                                               model.dynamics.parameters.coulomb_velocity_scale,

@@ -81,11 +81,7 @@ class TorqueCorrection:
     weights: np.ndarray  # (n, FEATURES) [N·m per feature]
     limit: np.ndarray  # (n,) largest |friction correction| seen in calibration [N·m]
     speed_scale: float  # [rad/s] of the smooth sign
-    inertia_limit: np.ndarray = None  # (n,) largest |inertial correction| seen [N·m]; None: 0
-
-    def __post_init__(self):
-        if self.inertia_limit is None:
-            object.__setattr__(self, 'inertia_limit', np.zeros(len(self.limit)))
+    inertia_limit: np.ndarray  # (n,) largest |inertial correction| seen in calibration [N·m]
 
     @classmethod
     def from_mapping(cls, data, n, source='<params>'):
@@ -102,8 +98,9 @@ class TorqueCorrection:
             raise ConfigError(msg) from err
         if weights.ndim == 2 and weights.shape[1] == len(FRICTION):
             weights = np.hstack([weights, np.zeros((len(weights), len(INERTIA)))])
+        arrays = (weights, limit, inertia_limit)
         if weights.shape != (n, FEATURES) or limit.shape != (n,) or inertia_limit.shape != (n,) \
-                or not speed_scale > 0 or not all(np.all(np.isfinite(a)) for a in (weights, limit, inertia_limit)) \
+                or not speed_scale > 0 or not all(np.all(np.isfinite(a)) for a in arrays) \
                 or np.any(limit < 0) or np.any(inertia_limit < 0):
             msg = (f'{source}: learned.torque must have weights {n}x{FEATURES}, limit and '
                    f'inertia_limit {n} (>= 0) and speed_scale > 0, finite; got {weights.shape}, '
