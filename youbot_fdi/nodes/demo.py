@@ -36,7 +36,8 @@ from youbot_fdi.nodes.conversions import event_from_status, reaction_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
 from youbot_fdi.structure.generate import wheel_suffix
-from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, REACTIONS, WHEEL_COMMANDS
+from youbot_fdi.topics import (CMD_VEL, FAULTS, JOINT_STATES, PREDICTED, REACTIONS, RESIDUALS,
+                               WHEEL_COMMANDS)
 
 COMMAND_RATE = 20.0  # /cmd_vel [Hz]
 STATUS_PERIOD = 1.0  # console line [s]
@@ -99,9 +100,20 @@ class DemoDriverNode(Node):
     def elapsed(self):
         return now_seconds(self) - self.start
 
+    def _connected(self):
+        """True once the FDI nodes are on the graph and every link of the pipeline has both ends
+        (a node on the graph may not have announced its topics yet: driving then would go
+        unseen)."""
+        if not self.waits_for <= set(self.get_node_names()):
+            return False
+        if self.count_subscribers(CMD_VEL) == 0 or self.count_publishers(FAULTS) == 0:
+            return False
+        return all((self.count_publishers(topic) > 0) == (self.count_subscribers(topic) > 0)
+                   for topic in (WHEEL_COMMANDS, PREDICTED, RESIDUALS))
+
     def on_timer(self):
         if self.start is None:
-            if not self.waits_for <= set(self.get_node_names()):
+            if self.waits_for and not self._connected():
                 return
             self.start = now_seconds(self)
         t = self.elapsed()
