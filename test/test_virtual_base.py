@@ -61,6 +61,9 @@ def test_command_watchdog_stops_the_wheels(rig):
 
 
 def test_controller_timeout_stops_a_module_until_cleared(rig):
+    """With recover_controller_timeout off, as the original driver: stopped until cleared."""
+    from dataclasses import replace
+    rig.driver.settings = replace(rig.driver.settings, recover_controller_timeout=False)
     command = forward_command(rig.model)
     rig.run(1.0, 'velocity', command)
     rig.base.advance(0.5)  # no process data for 0.5 s > 0.1 s controller timeout
@@ -73,6 +76,28 @@ def test_controller_timeout_stops_a_module_until_cleared(rig):
     sample = rig.run(1.5, 'velocity', command)
     np.testing.assert_allclose(sample.velocity, command, atol=0.01)
     assert not any(f & ErrorFlag.TIMEOUT for f in sample.error_flags)
+
+
+def test_a_late_cycle_that_trips_the_controller_timeout_is_recovered(rig):
+    """A host cycle late by more than GP 90 stops the modules (their timeout flag); once the
+    commands flow again the driver clears the flag (SAP 158) and the wheels follow again, counted
+    in the bus diagnostics. A stale command (the host's own watchdog) is not recovered from."""
+    command = forward_command(rig.model)
+    rig.run(1.0, 'velocity', command)
+    rig.base.advance(0.5)  # the host stalled for 0.5 s
+    sample = rig.step('velocity', command)  # the modules answer its first cycle with the flag
+    assert all(f & ErrorFlag.TIMEOUT for f in sample.error_flags)
+    assert rig.driver.timeout_recoveries == 0
+    sample = rig.run(1.5, 'velocity', command)
+    np.testing.assert_allclose(sample.velocity, command, atol=0.01)
+    assert not any(f & ErrorFlag.TIMEOUT for f in sample.error_flags)
+    assert rig.driver.timeout_recoveries == 4
+    bus = {h.name: h for h in rig.driver.health()}['bus']
+    assert bus.values['controller_timeouts_cleared'] == '4'
+    rig.base.advance(0.5)
+    sample = rig.run(1.0)  # no fresh command: the flag stays, nothing is cleared
+    assert all(f & ErrorFlag.TIMEOUT for f in sample.error_flags)
+    assert rig.driver.timeout_recoveries == 4
 
 
 def test_motors_off_coasts_with_zero_current(rig):

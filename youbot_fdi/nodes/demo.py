@@ -108,7 +108,7 @@ class DemoDriverNode(Node):
             return False
         if self.count_subscribers(CMD_VEL) == 0 or self.count_publishers(FAULTS) == 0:
             return False
-        return all((self.count_publishers(topic) > 0) == (self.count_subscribers(topic) > 0)
+        return all(self.count_publishers(topic) > 0 and self.count_subscribers(topic) > 0
                    for topic in (WHEEL_COMMANDS, PREDICTED, RESIDUALS))
 
     def on_timer(self):

@@ -53,6 +53,7 @@ class DriverShimNode(Node):
                                 lambda request, response, name=name: self.on_motor_off(name, response))
         self._last_stamp = None
         self._configured = False
+        self._recoveries_told = 0
         self.create_timer(1.0 / self.settings.cycle_rate, self.on_cycle)
         self.create_timer(1.0 / self.settings.diagnostics_rate, self.publish_diagnostics)
 
@@ -89,6 +90,12 @@ class DriverShimNode(Node):
             if failed:
                 self.get_logger().warning(f'modules did not answer configuration: {failed}')
         self.driver.cycle()
+        if self.driver.timeout_recoveries > self._recoveries_told:
+            self._recoveries_told = self.driver.timeout_recoveries
+            self.get_logger().warning(
+                'a module stopped on its controller timeout (no process data for '
+                f'{self.settings.controller_timeout:g} s: this cycle ran late) and was cleared '
+                f'({self._recoveries_told} so far)', throttle_duration_sec=2.0)
         sample = self.driver.sample()
         if sample is None or sample.stamp == self._last_stamp:
             return

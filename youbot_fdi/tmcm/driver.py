@@ -6,7 +6,12 @@ and are assembled into a :class:`BaseSample` in wheel units (rad, rad/s, N·m), 
 
 Safety: a **command watchdog** turns a command older than ``command_timeout`` into zero speed (the
 original youBot driver keeps sending the last command forever). ``motors_off`` commands 0 mA in
-current mode, as the youBot driver's switchOffMotors does.
+current mode, as the youBot driver's switchOffMotors does. A module that stopped on its own
+**controller timeout** (GP 90: no process data for ``controller_timeout``, the host's cycle was
+late) is cleared (SAP 158) once the host commands it again, at most once per ``command_timeout``,
+and counted (``timeout_recoveries``); the original driver only logs the flag, which left a wheel
+stopped for good (youbot_driver issue #10, whose workaround was this). ``recover_controller_timeout:
+false`` keeps it stopped until ``motors_on``.
 """
 from dataclasses import dataclass
 import enum
@@ -58,6 +63,7 @@ class DriverSettings:
     stale_cycles: int = 10  # a module silent this many cycles is lost
     tmcl_timeout: float = 0.2  # wait for a TMCL reply [s]
     controller_timeout: float = 0.1  # written to every module's GP 90 at start [s]
+    recover_controller_timeout: bool = True  # clear a tripped GP 90 once commands are fresh again
     diagnostics_rate: float = 1.0  # [Hz]
 
     def validate(self, source='<settings>'):
@@ -148,6 +154,9 @@ class BaseDriver:
         self._clock_offset = None  # driver clock - module clock [s], tracked slowly
         self._module_time = None  # unwrapped module clock of the last sample [s]
         self._offset_samples = 0
+        #: controller-timeout flags cleared while commands were fresh, and when each wheel's last was
+        self.timeout_recoveries = 0
+        self._recovered_at = np.full(n, -np.inf)
         self.rejected_commands = 0
         self.last_rejection = ''
         self.transport = CanTransport(bus, self._on_frame, owns_bus=owns_bus)
@@ -199,11 +208,30 @@ class BaseDriver:
             self.cycle_count = (self.cycle_count + 1) % CYCLE_MODULO
             cycle = self.cycle_count
             self._sent_at[cycle] = now
+            recover = self._timeouts_to_clear(now)
         sent = 0
         for module, (mode, value) in zip(self.settings.module_ids, commands):
             sent += self.transport.send(self.ids.command_id(module),
                                         MotorCommand(int(mode), value, cycle).encode())
+        for index in recover:  # not waited for: the cycle goes on; the next status shows it
+            self.transport.send(*TmclRequest(self.settings.module_ids[index], int(TmclCommand.SAP),
+                                             int(AxisParameter.CLEAR_TIMEOUT_FLAG), 0, 1).to_can())
         return sent
+
+    def _timeouts_to_clear(self, now):
+        """Wheels whose module reports its controller timeout while the host commands it (fresh
+        command, motors on): a late cycle stopped it, not a lost host. Each at most once per
+        ``command_timeout`` (the next status frames still carry the flag). Call with the lock."""
+        if not self.settings.recover_controller_timeout or not self.motors_enabled \
+                or self.command_is_stale(now):
+            return []
+        tripped = [k for k in range(self.n_wheels)
+                   if int(self._flags[k]) & ErrorFlag.TIMEOUT and k not in self.motors_off_wheels
+                   and now - self._recovered_at[k] >= self.settings.command_timeout]
+        for k in tripped:
+            self._recovered_at[k] = now
+        self.timeout_recoveries += len(tripped)
+        return tripped
 
     # ------------------------------------------------------------------ receiving
     def _on_frame(self, arbitration_id, data, _timestamp):
@@ -352,7 +380,9 @@ class BaseDriver:
         values = {key: str(value) for key, value in sorted(counters.items())}
         values.update({'incomplete_samples': str(incomplete), 'rejected_commands': str(self.rejected_commands),
                        'command_watchdog': 'tripped' if self.command_is_stale(now) else 'ok',
-                       'motors': 'on' if self.motors_enabled else 'off', 'last_error': last_error
+                       'motors': 'on' if self.motors_enabled else 'off',
+                       'controller_timeouts_cleared': str(self.timeout_recoveries),
+                       'last_error': last_error
                        or self.last_rejection})
         problems = sum(counters.get(k, 0) for k in ('malformed', 'send_errors', 'error_frames',
                                                     'handler_errors')) + incomplete + self.rejected_commands
