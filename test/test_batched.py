@@ -209,11 +209,14 @@ def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_d
 
 
 def test_batched_replay_equals_sample_by_sample_with_a_learned_correction(recordings, model):
-    """The learned correction (issue 12) is evaluated alike one sample at a time and in blocks."""
+    """The learned correction (issue 12) is evaluated alike one sample at a time and in blocks,
+    with its calibrated range (some rows outside it) and the WARN it gives; the replay's pooled
+    residual spread is the RMS of its residual frames."""
     from youbot_fdi.model.profile import PlatformModel
-    learned = {'torque': {'weights': [[0.02, 0.01, 0.001], [-0.01, 0.02, 0.0], [0.015, -0.01, 0.002],
-                                      [0.0, 0.01, -0.001]],
-                          'limit': [0.05] * 4, 'speed_scale': 0.05}}
+    learned = {'torque': {'weights': [[0.02, 0.01, 0.001, 0.0], [-0.01, 0.02, 0.0, 1e-4],
+                                      [0.015, -0.01, 0.002, 0.0], [0.0, 0.01, -0.001, -1e-4]],
+                          'limit': [0.05] * 4, 'inertia_limit': [0.02] * 4, 'speed_scale': 0.05,
+                          'speed_range': [[-6.0, 6.0]] * 4, 'acceleration_range': [[-40.0, 40.0]] * 4}}
     corrected = PlatformModel(replace(model.profile, learned=learned))
     settings = build_pipeline()[1].settings
     pipeline = FdiPipeline(corrected, settings, keep_frames=True)
@@ -224,6 +227,13 @@ def test_batched_replay_equals_sample_by_sample_with_a_learned_correction(record
     assert [e.to_dict() for e in events] == [e.to_dict() for e in expected]
     np.testing.assert_allclose(pipeline.residuals().values['torque'], [f.values['torque'] for f in frames],
                                rtol=1e-9, atol=1e-12)
+    outside = pipeline.residuals().outside_calibration
+    np.testing.assert_array_equal(outside, [f.outside_calibration for f in frames])
+    assert 0 < np.count_nonzero(outside) < len(outside)
+    assert any(e.fault == 'unseen_operating_point' for e in events)
+    for family, rms in pipeline.spread.rms().items():
+        values = pipeline.residuals().values[family]
+        assert rms == pytest.approx(np.sqrt(np.mean(values[np.isfinite(values)] ** 2)), rel=1e-9)
     physics = FdiPipeline(model, settings, keep_frames=True)
     with RecordingReader(recordings['friction'], model.wheel_names) as reader:
         for chunk in reader.chunks():

@@ -452,3 +452,39 @@ def test_a_wheel_outside_the_contact_laws_calibrated_range_is_allowed_the_shortf
     compliance = 1.0 / (model.firmware.velocity_kp * model.drive.torque_per_amp)
     np.testing.assert_allclose(wide.bounds['command'] - narrow.bounds['command'], extra * compliance,
                                atol=1e-12)
+
+
+def test_the_calibrated_range_warn_is_the_same_frame_by_frame_and_in_a_block(model):
+    """The decision's WARN/OK of the learned correction's range: WARN at the first row outside,
+    OK after unseen_release s back inside (not at every short return), the same one frame at a
+    time and in one batch; reset ends it."""
+    from dataclasses import replace as changed
+    from youbot_fdi.fdi.residuals import ResidualBatch
+    from youbot_fdi.faults import UNSEEN_OPERATING_POINT
+    settings = FdiSettings()
+    masks = [0.0] * 10 + [2.0] * 5 + [0.0] * 20 + [6.0] * 3 + [0.0] * 150
+    frames = [changed(_frame(model, 10.0 + 0.01 * k, 0.1), outside_calibration=m)
+              for k, m in enumerate(masks)]
+    one = DecisionMaker(model.wheel_names, settings, load_residual_data())
+    single = [e for f in frames for e in one.update(f)]
+    block = DecisionMaker(model.wheel_names, settings, load_residual_data())
+    batched = block.update_batch(ResidualBatch.concatenate([_batch_of(f) for f in frames]))
+    assert [e.to_dict() for e in single] == [e.to_dict() for e in batched]
+    assert [(e.level, round(e.stamp, 2)) for e in single] == [('WARN', 10.1),
+                                                             ('OK', round(10.37 + settings.unseen_release, 2))]
+    assert single[0].fault == UNSEEN_OPERATING_POINT and 'fr' in single[0].detail
+    again = DecisionMaker(model.wheel_names, settings, load_residual_data())
+    again.update(frames[10])
+    events, cleared = again.reset(11.0)
+    assert [e.level for e in events] == ['OK'] and cleared == [f'base: {UNSEEN_OPERATING_POINT}']
+
+
+def _batch_of(frame):
+    """A one-row ResidualBatch of a ResidualFrame."""
+    from youbot_fdi.fdi.residuals import ResidualBatch, ROW_ARRAYS
+    rows = {name: np.asarray([getattr(frame, name) if name != 'velocity_mode'
+                              else frame.command_mode == 'velocity'])
+            for name in ROW_ARRAYS if name != 'command_speed'}
+    return ResidualBatch(values={f: v[None] for f, v in frame.values.items()},
+                         bounds={f: b[None] for f, b in frame.bounds.items()},
+                         command_speed=frame.velocity[None], **rows)

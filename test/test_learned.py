@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from youbot_fdi.errors import ConfigError
-from youbot_fdi.fdi.learned import FEATURES, fit_torque_correction, TorqueCorrection
+from youbot_fdi.fdi.learned import (FEATURES, fit_torque_correction, masked_wheels, TorqueCorrection,
+                                    wheel_mask)
 
 SCALE = 0.05  # [rad/s]
 
@@ -38,11 +39,29 @@ def test_the_fit_recovers_friction_that_differs_by_direction_and_a_missed_inerti
 
 
 def test_one_sample_equals_a_block():
+    """The live observer's one-sample path (plain floats) equals the block path (numpy): the
+    parts, the current gate of the inertial feature and the wheels outside the calibrated range
+    (NaN readings included)."""
+    from youbot_fdi.fdi.learned import inertial_feature
     rng = np.random.default_rng(1)
-    correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.5), SCALE, np.full(4, 0.5))
-    speed, acceleration = rng.normal(scale=2.0, size=(2, 50, 4))
-    np.testing.assert_allclose(np.array([correction(v, a) for v, a in zip(speed, acceleration)]),
-                               correction(speed, acceleration))
+    ranges = np.tile([-2.0, 2.0], (4, 1))
+    weights = rng.normal(size=(4, FEATURES))
+    weights[1, :3] = 0.0  # inertia only: its speed is not checked
+    correction = TorqueCorrection(weights, np.full(4, 0.5), SCALE, np.full(4, 0.5), ranges,
+                                  3.0 * ranges, 0.1)
+    speed, acceleration, torque, before = rng.normal(scale=2.0, size=(4, 200, 4))
+    speed[5, 2] = torque[7, 0] = acceleration[9, 3] = np.nan
+    friction, inertial, seen = correction.applied(speed, inertial_feature(acceleration, torque, before, 2.5))
+    mask = wheel_mask(seen)
+    assert 0 < np.count_nonzero(mask) < len(mask) and np.any(inertial == 0.0) and np.any(inertial != 0.0)
+    for k in range(len(speed)):
+        one = correction.one_sample(speed[k], acceleration[k], torque[k], before[k], 2.5)
+        np.testing.assert_allclose(one[0], friction[k], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(one[1], inertial[k], rtol=1e-12, atol=1e-15)
+        assert one[2] == mask[k]
+    unbounded = TorqueCorrection(weights, np.full(4, 0.5), SCALE, np.full(4, 0.5))
+    np.testing.assert_allclose(np.array([unbounded(v, a) for v, a in zip(speed[:50], acceleration[:50])]),
+                               unbounded(speed[:50], acceleration[:50]))
 
 
 def test_a_wheel_that_departs_alone_is_not_learned():
@@ -149,3 +168,75 @@ def test_the_learned_correction_lowers_the_spread_on_held_back_drives(tmp_path):
         assert spread['learned'] < 0.97 * spread['physics']  # 5-6 % here
         assert [e for e in build_pipeline(params)[1].replay(tmp_path / f'held_back{seed}').events
                 if e.level == 'ERROR'] == []
+
+
+def test_the_correction_holds_only_in_the_range_calibration_saw():
+    """identify records each wheel's speed and acceleration range; outside it (widened by the
+    margin) that wheel's correction is 0 (physics only), inside it is applied; a wheel only
+    checks what it keeps (no inertia part: any acceleration is seen); the file round-trips."""
+    rng = np.random.default_rng(4)
+    truth = np.array([[0.05, 0.03, 0.002, 0.0], [0.0, 0.0, 0.0, -0.002],
+                      [0.04, 0.0, 0.0, 0.001], [0.05, 0.0, 0.001, 0.0]])
+    speed, acceleration, residual = synthetic(rng, truth)  # speeds within +-6 rad/s
+    correction, _ = fit_torque_correction(speed, acceleration, residual, SCALE, torque_floor=0.01)
+    np.testing.assert_allclose(correction.speed_range, [[speed[:, w].min(), speed[:, w].max()]
+                                                        for w in range(4)])
+    assert correction.acceleration_range.shape == (4, 2)
+    read = TorqueCorrection.from_mapping(correction.to_mapping(), 4)
+    np.testing.assert_allclose(read.speed_range, correction.speed_range)
+    from dataclasses import replace
+    margin = replace(read, range_margin=0.1)
+    inside, fast = np.full(4, 3.0), np.array([3.0, 9.0, 9.0, 3.0])  # 9 rad/s > 6 + 10 % of 12
+    still = np.zeros(4)
+    friction, inertial, seen = margin.applied(fast, still)
+    # Wheel 1 keeps no friction part: its speed is not checked; wheel 2 does: physics only.
+    assert seen.tolist() == [True, True, False, True]
+    assert friction[2] == 0.0 and friction[0] == margin.friction(fast)[0] != 0.0
+    assert wheel_mask(seen) == 4.0 and masked_wheels(wheel_mask(seen), 4) == [2]
+    assert margin.applied(np.full(4, 6.5), still)[2].all()  # within the margin
+    hard = np.array([0.0, 1e4, 0.0, 0.0])  # wheel 1's inertia part: outside; wheel 0 has none
+    assert margin.seen(inside, hard).tolist() == [True, False, True, True]
+    np.testing.assert_array_equal(wheel_mask(np.stack([seen, seen])), [4.0, 4.0])
+    # A file written before the ranges: every operating point is seen.
+    old = {k: v for k, v in correction.to_mapping().items() if not k.endswith('_range')}
+    assert TorqueCorrection.from_mapping(old, 4).seen(np.full(4, 1e3), np.full(4, 1e6)).all()
+    with pytest.raises(ConfigError, match='speed_range'):
+        TorqueCorrection.from_mapping({**correction.to_mapping(), 'speed_range': [[1.0, 0.0]] * 4}, 4)
+
+
+def test_a_recording_outside_the_calibrated_range_falls_back_and_warns(tmp_path):
+    """identify on a slow drive of the independent simulator (current mode: it learns an inertia
+    part); a faster drive leaves the calibrated range: a WARN unseen_operating_point (no wheel,
+    the detail naming the wheels), the residual rows outside flagged, an OK once back inside,
+    and no alarm. The slow drive itself raises no such WARN."""
+    from youbot_fdi.bench.independent_sim import simulate
+    from youbot_fdi.cli.main import main
+    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.faults import UNSEEN_OPERATING_POINT
+    slow = [(0.15, 0.0, 0.0, 1.5), (0.0, 0.12, 0.0, 1.5), (0.0, 0.0, 0.45, 1.5), (0.1, -0.1, 0.0, 1.5),
+            (-0.12, 0.05, -0.25, 1.5), (0.0, 0.0, 0.0, 0.5)] * 2
+    simulate(tmp_path / 'slow', slow, seed=1, mode='effort')
+    params = tmp_path / 'params.yaml'
+    assert main(['identify', str(tmp_path / 'slow'), '--output', str(params)]) == 0
+    assert build_pipeline(params)[1].generator.correction is not None
+    fast = [(0.1, 0.0, 0.0, 2.0), (0.0, 0.0, 0.0, 0.5), (0.0, 0.0, 1.6, 1.0), (0.0, 0.0, 0.0, 2.5),
+            (0.1, 0.0, 0.0, 2.0)]
+    simulate(tmp_path / 'fast', fast, seed=2, mode='effort')
+    pipeline = build_pipeline(params, keep_frames=True)[1]
+    events = pipeline.replay(tmp_path / 'fast').events
+    unseen = [e for e in events if e.fault == UNSEEN_OPERATING_POINT]
+    assert [e.level for e in unseen][:2] == ['WARN', 'OK'] and unseen[0].wheel is None
+    assert 'not seen in calibration' in unseen[0].detail and 'physics only' in unseen[0].detail
+    assert not [e for e in events if e.level == 'ERROR']
+    frames = pipeline.residuals()
+    outside = frames.outside_calibration > 0
+    assert outside.any() and not outside.all()
+    assert unseen[0].stamp == frames.stamp[np.flatnonzero(outside)[0]]
+    assert not [e for e in build_pipeline(params)[1].replay(tmp_path / 'slow').events
+                if e.fault == UNSEEN_OPERATING_POINT]
+    # The replay report shows the residual, its bound and the learned part against the speed.
+    report = tmp_path / 'report'
+    assert main(['replay', str(tmp_path / 'fast'), '--params', str(params), '--events',
+                 str(tmp_path / 'events.jsonl'), '--report', str(report)]) == 0
+    assert (report / 'operating_point.png').stat().st_size > 10_000
+    assert 'operating_point.png' in (report / 'index.html').read_text()

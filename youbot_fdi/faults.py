@@ -18,6 +18,13 @@ class FaultKind(str, enum.Enum):
 #: Reported as a WARN event not tied to a wheel, with the factor in its detail.
 LOAD_CHANGE = 'load_change'
 
+#: Not a fault: the operating point is outside what the learned correction was calibrated on, so
+#: the physics alone judges the wheels named in the WARN's detail (youbot_fdi/fdi/learned.py).
+UNSEEN_OPERATING_POINT = 'unseen_operating_point'
+
+#: The base conditions reported beside the faults (WARN/OK, not tied to a wheel).
+CONDITIONS = (LOAD_CHANGE, UNSEEN_OPERATING_POINT)
+
 #: Fault kinds a virtual base can inject (everything but ``unknown``).
 INJECTABLE = tuple(k for k in FaultKind if k is not FaultKind.UNKNOWN)
 

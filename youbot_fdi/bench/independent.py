@@ -71,8 +71,7 @@ def _calibrate(job):
 
 
 def _run(job):
-    from youbot_fdi.bench.scoring import Case, score
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.bench.scoring import Case, replay_scored
     (mode, name, fault, wheel, stamping, seed), workdir, params = job
     segments = drive(seed, NOMINAL_SECONDS if fault is None else FAULT_SECONDS)
     path = Path(workdir) / name.replace('/', '_')
@@ -86,8 +85,7 @@ def _run(job):
                 start + onset if fault else math.nan, fault, start, start + at if fault else math.nan)
     if fault and math.isnan(onset):
         return None  # a runaway whose command never changed is invisible
-    return {variant: score(case, build_pipeline(file)[1].replay(path).events)
-            for variant, file in params.items()}
+    return replay_scored(case, params)
 
 
 def run_suite(workdir, progress=print, workers=2, seed=0):

@@ -198,8 +198,7 @@ def suite_cases(root):
 def _replay_case(job):
     """Convert one case, replay it with each variant's parameters; {variant: score dict}
     (worker process)."""
-    from youbot_fdi.bench.scoring import Case, score
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.bench.scoring import Case, replay_scored
     from youbot_fdi.model.profile import load_model
     name, runs, fault, wheel, onset, workdir, params = job
     model = load_model(PROFILE)
@@ -210,8 +209,7 @@ def _replay_case(job):
                 None if wheel is None else model.wheel_names[wheel],
                 math.nan if onset is None else start + float(run.time[onset] - run.time[0]),
                 EXPECTED_KIND.get(fault), start)
-    return {variant: score(case, build_pipeline(file)[1].replay(path).events)
-            for variant, file in params.items()}
+    return replay_scored(case, params)
 
 
 def run_suite(workdir, progress=print, workers=2, root=None):

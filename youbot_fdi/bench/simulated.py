@@ -181,9 +181,13 @@ def _run_case(case):
     visible = injected_at
     if fault == 'runaway':
         visible = _visible_time(plant, script, plant.wheel_names.index(wheel), injected_at, mode)
-    return {variant: _scored(build_pipeline(file)[1].replay(path).events, variation, mode, fault,
-                             wheel, duration, injected_at, visible, path, file)
-            for variant, file in params.items()}
+    out = {}
+    for variant, file in params.items():
+        replayed = build_pipeline(file)[1].replay(path)
+        out[variant] = {**_scored(replayed.events, variation, mode, fault, wheel, duration,
+                                  injected_at, visible, path, file),
+                        'spread': replayed.spread if fault is None else None}
+    return out
 
 
 def _scored(events, variation, mode, fault, wheel, duration, injected_at, visible, path, params):

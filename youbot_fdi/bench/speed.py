@@ -198,7 +198,8 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
     import tempfile
     from pathlib import Path
     from youbot_fdi.bag.reader import RecordingReader
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from dataclasses import replace
+    from youbot_fdi.fdi.pipeline import build_pipeline, FdiPipeline
     results = []
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
         cases = _replay_recordings(Path(tmp), progress, seconds)
@@ -227,8 +228,10 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
         model, _ = build_pipeline(params)
         replayed = results[0].value
 
-        def live():
+        def live(physics_only=False):
             _, pipeline = build_pipeline(params)
+            if physics_only:
+                pipeline = FdiPipeline(model, replace(pipeline.settings, physics_only=True))
             generator, decision = pipeline.generator, pipeline.decision
             with RecordingReader(path, model.wheel_names) as reader:
                 for sample in reader.samples():
@@ -242,9 +245,13 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
         with RecordingReader(path, model.wheel_names) as reader:
             samples = sum(c.msgcount for c in reader.connections if c.topic == reader.joint_topic)
         per_sample = 1e6 / samples  # [µs/s] per /joint_states sample (with its share of commands)
-        results.append(BenchResult('live path: one sample at a time', _best_time(live) * per_sample,
+        learned = _best_time(live) * per_sample
+        results.append(BenchResult('live path: one sample at a time', learned,
                                    'us/sample', 'replay per sample', replayed * per_sample,
                                    'generator + decision, as the nodes call them'))
+        results.append(BenchResult('live path: learned variant', learned, 'us/sample',
+                                   'the same, physics only', _best_time(lambda: live(True)) * per_sample,
+                                   'what the learned correction adds to the nodes (issue 12)'))
     return results
 
 
@@ -268,12 +275,15 @@ LEARNED_TARGET_US = 20.0  # [µs] the learned correction per sample, all wheels 
 
 def bench_learned():
     """The learned torque correction evaluated for one sample of four wheels (what the live
-    observer adds per sample), against one numpy tanh of four values."""
+    observer adds per sample: the inertial feature's current gate, both parts within the
+    calibrated range, the wheels outside it), against one numpy tanh of four values."""
     from youbot_fdi.fdi.learned import FEATURES, TorqueCorrection
     rng = np.random.default_rng(0)
-    correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.1), 0.05, np.full(4, 0.1))
-    speed, acceleration = rng.normal(size=4), rng.normal(size=4)
-    value = 1e6 / _rate(lambda: correction(speed, acceleration))
+    ranges = np.tile([-1.0, 1.0], (4, 1))
+    correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.1), 0.05, np.full(4, 0.1),
+                                  ranges, 10.0 * ranges, 0.1)
+    speed, acceleration, torque, before = rng.normal(size=(4, 4))
+    value = 1e6 / _rate(lambda: correction.one_sample(speed, acceleration, torque, before, 1.0))
     baseline = 1e6 / _rate(lambda: np.tanh(speed))
     return BenchResult('learned correction: one sample, 4 wheels', value, 'us', 'np.tanh of 4 values',
                        baseline, f'target <= {LEARNED_TARGET_US:g} us')

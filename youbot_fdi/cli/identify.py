@@ -78,6 +78,13 @@ def run(args):
                   'residual RMS physics -> learned: ' + ', '.join(f'{family} {spread["physics"][family]:.4g} -> '
                                           f'{spread["learned"][family]:.4g}'
                                           for family in spread['physics']))
+        torque = (result.profile.learned or {}).get('torque') or {}
+        if torque.get('speed_range') is not None:
+            speeds, accelerations = (np.array(torque[key]) for key in ('speed_range', 'acceleration_range'))
+            print(f'  it holds where this recording has been: wheel speeds {speeds[:, 0].min():.3g} to '
+                  f'{speeds[:, 1].max():.3g} rad/s, accelerations {accelerations[:, 0].min():.3g} to '
+                  f'{accelerations[:, 1].max():.3g} rad/s² (per wheel in the file; outside: physics '
+                  'only and a WARN unseen_operating_point)')
     print('  bound floors: ' + ', '.join(f'{k} {v:.4g}' for k, v in result.fdi.items()
                                         if k.endswith('_sigma')))
     print(f'  bounds: the {settings.bound_quantile:.0%} quantile of |r| on the operating point, '

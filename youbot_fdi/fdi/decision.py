@@ -33,13 +33,17 @@
    rejection): a ``WARN`` event ``load_change`` not tied to a wheel, "surface or load changed"
    with the factor, when it departs from 1 by more than ``load_warn``; ``OK`` again below half
    of that. It is never a wheel fault.
+6. **The calibrated range** of a learned correction: a ``WARN`` ``unseen_operating_point`` (not
+   tied to a wheel; the detail names the wheels) when a wheel's operating point leaves what
+   ``identify`` saw, so the physics alone judges it; ``OK`` after ``unseen_release`` s back inside.
 """
 from dataclasses import dataclass
 import json
 
 import numpy as np
 
-from youbot_fdi.faults import FaultKind, LOAD_CHANGE
+from youbot_fdi.faults import FaultKind, LOAD_CHANGE, UNSEEN_OPERATING_POINT
+from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum, last_true_value
 from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
@@ -132,6 +136,8 @@ class DecisionMaker:
         self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
         self._below = np.zeros(shape, dtype=int)
         self.load_level = OK  # of the load condition (OK or WARN)
+        self.range_level = OK  # of the learned correction's calibrated range (OK or WARN)
+        self._outside_stamp = NEVER  # [s] of the last row outside that range
         self.alarm = np.zeros(shape, dtype=bool)
         self.components = {w: _Component() for w in self.wheel_names}
         self.components[BASE] = _Component()
@@ -367,6 +373,38 @@ class DecisionMaker:
         self.load_level = level
         return events
 
+    def _range_events(self, stamps, outside):
+        """WARN/OK events of the calibrated range over rows (stamps (N,), wheel bit masks (N,),
+        see :func:`~youbot_fdi.fdi.learned.wheel_mask`): WARN at the first row outside, OK at the
+        first row ``unseen_release`` s after the last one outside."""
+        outside = np.asarray(outside, dtype=float)
+        out = outside > 0.0
+        if self.range_level == OK and not out.any():  # the usual case: nothing to do
+            return []
+        stamps = np.asarray(stamps, dtype=float)
+        last_out = last_true_value(out, stamps, self._outside_stamp)
+        back = ~out & (stamps - last_out >= self.settings.unseen_release)
+        events, level, k = [], self.range_level, 0
+        while k < len(stamps):
+            found = np.flatnonzero((out if level == OK else back)[k:])
+            if not len(found):
+                break
+            k += int(found[0])
+            level = WARN if level == OK else OK
+            if level == WARN:
+                wheels = ', '.join(self.suffixes[w] for w in masked_wheels(outside[k], self.n))
+                detail = (f'operating point not seen in calibration ({wheels}): physics only '
+                          'there, without the learned correction')
+            else:
+                detail = 'operating point back within the calibrated range'
+            events.append(FaultEvent(float(stamps[k]), level, BASE, UNSEEN_OPERATING_POINT,
+                                     ('outside_calibration',), detail))
+            k += 1
+        self.range_level = level
+        if len(stamps):
+            self._outside_stamp = float(last_out[-1])
+        return events
+
     def _can_diagnose(self, alarm, position_frozen):
         """Rows of ``alarm`` (N, families, n) that give a diagnosis when every component is OK:
         a torque or encoder alarm, a position frozen while moving (``position_frozen`` (N, n)
@@ -508,7 +546,8 @@ class DecisionMaker:
         self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
                        np.array([frame.stamp]))
         self._row = self._recent_first + len(self._recent[0]) - 1
-        events = self._load_events([frame.stamp], [frame.load_factor])
+        events = (self._load_events([frame.stamp], [frame.load_factor])
+                  + self._range_events([frame.stamp], [frame.outside_calibration]))
         if self._all_ok() and not self._can_diagnose(alarm, frame.position_frozen[None])[0]:
             return events
         return events + self._step(frame, z)
@@ -534,7 +573,8 @@ class DecisionMaker:
         flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
                                 batch.effort_frozen >= frozen, batch.position_frozen >= frozen],
                                axis=1)
-        load_events = self._load_events(batch.stamp, batch.load_factor)
+        load_events = (self._load_events(batch.stamp, batch.load_factor)
+                       + self._range_events(batch.stamp, batch.outside_calibration))
         changed = np.flatnonzero(np.concatenate([[True], (flags[1:] != flags[:-1]).any(axis=1)]))
         self.samples += rows
         self._remember(batch.values['torque'], batch.torque, batch.velocity, batch.stamp)
@@ -654,6 +694,12 @@ class DecisionMaker:
             cleared.append(f'{BASE_NAME}: {LOAD_CHANGE}')
             events.append(FaultEvent(stamp, OK, BASE, LOAD_CHANGE, ('load_factor',), detail))
             self.load_level = OK
+        if self.range_level != OK:
+            cleared.append(f'{BASE_NAME}: {UNSEEN_OPERATING_POINT}')
+            events.append(FaultEvent(stamp, OK, BASE, UNSEEN_OPERATING_POINT,
+                                     ('outside_calibration',), detail))
+            self.range_level = OK
+        self._outside_stamp = NEVER
         self._evidence[:] = 0.0
         self._shift[:] = 0.0
         self._level = ExponentialAverage(self.n)

@@ -37,7 +37,7 @@ import scipy.sparse
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi.learned import fit_torque_correction, inertial_feature
-from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator
+from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator, ResidualSpread
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.dynamics import rolling_share
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
@@ -357,7 +357,7 @@ def contact_share_floor(model, arrays, settings):
 
 def _rms(batch):
     """{family: RMS of its residuals over the rows and wheels} of a ResidualBatch."""
-    return {family: float(np.sqrt(np.nanmean(values ** 2))) for family, values in batch.values.items()}
+    return ResidualSpread().add(batch).rms()
 
 
 def learn_corrections(model, arrays, settings, physics):

@@ -25,8 +25,12 @@ Two gaps, each learned per wheel from that wheel's own operating point over the 
   the current reaches the firmware's limit (:data:`SATURATION_SHARE`),
   added to the explained torque only (the friction the predictions work against is unchanged).
 
-``limit_w`` and ``inertia_limit_w`` are the largest corrections seen in calibration: outside the
-operating range the data covered they do not grow. Each wheel keeps a group of features (friction,
+``limit_w`` and ``inertia_limit_w`` are the largest corrections seen in calibration, and the
+correction holds only at operating points the calibration covered: each wheel's mean speed (where
+it keeps a friction part) and acceleration (where it keeps an inertia part) within the range
+``identify`` saw, widened by ``calibration_range_margin`` of its span on each side. Outside it
+that wheel falls back to the physics (no correction) and the decision says so (a ``WARN``
+``unseen_operating_point``): what was learned there is a guess. Each wheel keeps a group of features (friction,
 inertia, or both) only where it lowers what is left of its residual's mean square out of sample by
 at least ``MIN_GAIN`` (fitted on part of the recording, tried on the rest); a recording with
 nothing systematic to learn gives no correction at all. The bounds stay fitted to the physics
@@ -47,6 +51,8 @@ shared by the live nodes and ``replay``; :func:`fit_torque_correction` is the fi
 runs (ridge least squares, numpy only: no training dependency).
 """
 from dataclasses import dataclass
+from functools import cached_property
+import math
 
 import numpy as np
 
@@ -82,6 +88,11 @@ class TorqueCorrection:
     limit: np.ndarray  # (n,) largest |friction correction| seen in calibration [N·m]
     speed_scale: float  # [rad/s] of the smooth sign
     inertia_limit: np.ndarray  # (n,) largest |inertial correction| seen in calibration [N·m]
+    #: (n, 2) lowest and highest mean wheel speed [rad/s] and inertial feature [rad/s²] seen in
+    #: calibration; None: not recorded (a file written before the ranges), every point is seen
+    speed_range: np.ndarray = None
+    acceleration_range: np.ndarray = None
+    range_margin: float = 0.0  # the ranges are widened by this share of their span each side [-]
 
     @classmethod
     def from_mapping(cls, data, n, source='<params>'):
@@ -92,6 +103,8 @@ class TorqueCorrection:
             limit = np.array(data['limit'], dtype=float)
             speed_scale = float(data['speed_scale'])
             inertia_limit = np.array(data.get('inertia_limit', np.zeros(n)), dtype=float)
+            ranges = [None if data.get(key) is None else np.array(data[key], dtype=float)
+                      for key in ('speed_range', 'acceleration_range')]
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             msg = (f'{source}: learned.torque needs weights ({n}x{FEATURES}), limit ({n}), '
                    f'inertia_limit ({n}) and speed_scale: {err}')
@@ -106,14 +119,32 @@ class TorqueCorrection:
                    f'inertia_limit {n} (>= 0) and speed_scale > 0, finite; got {weights.shape}, '
                    f'{limit.shape}, {inertia_limit.shape}, {speed_scale}')
             raise ConfigError(msg)
-        return cls(weights, limit, speed_scale, inertia_limit)
+        for key, found in zip(('speed_range', 'acceleration_range'), ranges):
+            if found is not None and (found.shape != (n, 2) or not np.all(np.isfinite(found))
+                                      or np.any(found[:, 0] > found[:, 1])):
+                msg = f'{source}: learned.torque.{key} must be {n} finite [low, high] pairs'
+                raise ConfigError(msg)
+        return cls(weights, limit, speed_scale, inertia_limit, *ranges)
 
     def to_mapping(self):
         """The ``learned.torque`` mapping written by ``identify``."""
-        return {'weights': [[float(v) for v in row] for row in self.weights],
-                'limit': [float(v) for v in self.limit],
-                'inertia_limit': [float(v) for v in self.inertia_limit],
-                'speed_scale': float(self.speed_scale)}
+        mapping = {'weights': [[float(v) for v in row] for row in self.weights],
+                   'limit': [float(v) for v in self.limit],
+                   'inertia_limit': [float(v) for v in self.inertia_limit],
+                   'speed_scale': float(self.speed_scale)}
+        for key in ('speed_range', 'acceleration_range'):
+            found = getattr(self, key)
+            if found is not None:
+                mapping[key] = [[float(low), float(high)] for low, high in found]
+        return mapping
+
+    def seen(self, mean_speed, acceleration):
+        """(..., n) bool: the operating point (mean wheel speeds [rad/s], inertial features
+        [rad/s²], (..., n)) is one the calibration covered, for what the wheel keeps: its speed
+        where it has a friction part, its acceleration where it has an inertia part."""
+        slow, fast, least, most = self._prepared[3]
+        return ((mean_speed >= slow) & (mean_speed <= fast) & (acceleration >= least)
+                & (acceleration <= most))
 
     def features(self, mean_speed, acceleration):
         """(..., n, FEATURES) features of mean wheel speeds [rad/s] and accelerations [rad/s²]
@@ -121,21 +152,90 @@ class TorqueCorrection:
         sign = np.tanh(mean_speed / self.speed_scale)
         return np.stack([sign, np.abs(sign), mean_speed, acceleration], axis=-1)
 
+    @cached_property
+    def _prepared(self):
+        """The weights' columns, the negated limits and the widened ranges (-inf, inf where a
+        wheel does not check that feature), laid out once: a live sample is a few small numpy
+        operations (``youbot-fdi bench``)."""
+        columns = tuple(np.ascontiguousarray(self.weights[:, k]) for k in range(FEATURES))
+        bounds = []
+        for found, used in ((self.speed_range, FRICTION), (self.acceleration_range, INERTIA)):
+            checked = np.any(self.weights[:, list(used)] != 0.0, axis=1)
+            if found is None:
+                checked = np.zeros(len(self.weights), dtype=bool)
+                found = np.zeros((len(self.weights), 2))
+            widen = self.range_margin * (found[:, 1] - found[:, 0])
+            bounds += [np.where(checked, found[:, 0] - widen, -np.inf),
+                       np.where(checked, found[:, 1] + widen, np.inf)]
+        return columns, -self.limit, -self.inertia_limit, bounds
+
     def friction(self, mean_speed):
         """The friction part [N·m] (..., n) at mean wheel speeds (..., n) [rad/s]."""
+        (w0, w1, w2, _), low, _, _ = self._prepared
         sign = np.tanh(mean_speed / self.speed_scale)
-        w = self.weights
-        return np.clip(w[:, 0] * sign + w[:, 1] * np.abs(sign) + w[:, 2] * mean_speed,
-                       -self.limit, self.limit)
+        return np.minimum(np.maximum(w0 * sign + w1 * np.abs(sign) + w2 * mean_speed, low),
+                          self.limit)
 
     def inertial(self, acceleration):
         """The inertial part [N·m] (..., n) at wheel accelerations (..., n) [rad/s²], as
         :func:`inertial_feature` gives them (0 where the current is at its limit)."""
-        return np.clip(self.weights[:, 3] * acceleration, -self.inertia_limit, self.inertia_limit)
+        (_, _, _, w3), _, low, _ = self._prepared
+        return np.minimum(np.maximum(w3 * acceleration, low), self.inertia_limit)
 
     def __call__(self, mean_speed, acceleration):
         """The whole correction [N·m] (..., n)."""
         return self.friction(mean_speed) + self.inertial(acceleration)
+
+    def applied(self, mean_speed, acceleration):
+        """(friction part, inertial part, seen) (..., n) as the observer applies them: both parts
+        0 where the operating point was not seen in calibration (:meth:`seen` false)."""
+        seen = self.seen(mean_speed, acceleration)
+        return (np.where(seen, self.friction(mean_speed), 0.0),
+                np.where(seen, self.inertial(acceleration), 0.0), seen)
+
+
+    @cached_property
+    def _scalars(self):
+        """:attr:`_prepared` as lists of floats, for :meth:`one_sample`."""
+        columns, _, _, bounds = self._prepared
+        return ([c.tolist() for c in columns], self.limit.tolist(), self.inertia_limit.tolist(),
+                [b.tolist() for b in bounds])
+
+    def one_sample(self, mean_speed, acceleration, torque, prev_torque, max_torque):
+        """One sample's (friction part, inertial part, :func:`wheel_mask` of the wheels outside
+        the calibrated range) from its (n,) mean speeds [rad/s], speed changes per second
+        [rad/s²] and torques at the interval's ends [N·m]: :meth:`applied` with
+        :func:`inertial_feature`, in plain floats (numpy's call overhead dominates four wheels:
+        the live observer's path; a test holds the two equal)."""
+        (w0, w1, w2, w3), limit, inertia_limit, (slow, fast, least, most) = self._scalars
+        level = SATURATION_SHARE * max_torque
+        friction, inertial, mask = [], [], 0.0
+        for w, (v, a, t, p) in enumerate(zip(mean_speed.tolist(), acceleration.tolist(),
+                                              torque.tolist(), prev_torque.tolist())):
+            if not abs(t) < level or not abs(p) < level:
+                a = 0.0
+            if slow[w] <= v <= fast[w] and least[w] <= a <= most[w]:
+                sign = math.tanh(v / self.speed_scale)
+                friction.append(min(max(w0[w] * sign + w1[w] * abs(sign) + w2[w] * v, -limit[w]),
+                                    limit[w]))
+                inertial.append(min(max(w3[w] * a, -inertia_limit[w]), inertia_limit[w]))
+            else:
+                friction.append(0.0)
+                inertial.append(0.0)
+                mask += 2.0 ** w
+        return np.array(friction), np.array(inertial), mask
+
+
+def wheel_mask(seen):
+    """(...,) float: the wheels whose operating point was not seen (``seen`` (..., n) false) as
+    a bit mask, bit w for wheel w (exact in a float for any wheel count a base has)."""
+    return np.logical_not(seen) @ 2.0 ** np.arange(np.shape(seen)[-1])
+
+
+def masked_wheels(mask, n):
+    """The wheel indices of a :func:`wheel_mask` value."""
+    bits = int(mask)
+    return [w for w in range(n) if bits >> w & 1]
 
 
 def inertial_feature(acceleration, torque, prev_torque, max_torque):
@@ -230,5 +330,8 @@ def fit_torque_correction(mean_speed, acceleration, residual, speed_scale, torqu
             friction[:, w] = inertial[:, w] = 0.0
     if not np.any(weights):
         return None, notes + ['no wheel\'s residual has a part the features explain: physics only']
+    covered = np.all(np.isfinite(mean_speed), axis=1) & np.all(np.isfinite(acceleration), axis=1)
+    ranges = [np.stack([np.min(v[covered], axis=0), np.max(v[covered], axis=0)], axis=1)
+              for v in (mean_speed, acceleration)]
     return TorqueCorrection(weights, np.max(np.abs(friction), axis=0), speed_scale,
-                            np.max(np.abs(inertial), axis=0)), notes
+                            np.max(np.abs(inertial), axis=0), *ranges), notes

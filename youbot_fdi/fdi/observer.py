@@ -28,11 +28,11 @@ its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerat
 :meth:`ModelObserver.update_batch` computes a block of samples at once (the replay);
 :meth:`ModelObserver.update` is the same computation for one sample (the live node).
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection
+from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mask
 from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, scalar_recursion
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, VELOCITY
@@ -47,7 +47,7 @@ MAX_PENDING_COMMANDS = 256
 WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
                 'commanded_before', 'explained', 'friction', 'unseen_friction')
 #: Scalar fields of a prediction, after the per-wheel ones.
-SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor')
+SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor', 'outside_calibration')
 
 
 def signed_torque(torque, reference, signed_effort):
@@ -73,11 +73,15 @@ class Prediction:
     friction: np.ndarray  # [N·m]
     unseen_friction: np.ndarray  # [N·m] friction the contact law may miss out of its calibrated range
     load_factor: float  # [-]
+    #: wheels whose operating point the learned correction's calibration did not cover (bit w for
+    #: wheel w, youbot_fdi.fdi.learned.wheel_mask): physics only for them; 0 without a correction
+    outside_calibration: float = 0.0
 
     @staticmethod
     def labels(wheel_names):
         """The labels of :meth:`to_vector`: ``<field>_<w>`` for the per-wheel fields
-        (:data:`WHEEL_FIELDS`), then ``since``, ``velocity_mode`` (1/0) and ``load_factor``."""
+        (:data:`WHEEL_FIELDS`), then ``since``, ``velocity_mode`` (1/0), ``load_factor`` and
+        ``outside_calibration``."""
         suffixes = [wheel_suffix(w) for w in wheel_names]
         return [f'{field}_{s}' for field in WHEEL_FIELDS for s in suffixes] + list(SCALAR_FIELDS)
 
@@ -85,7 +89,8 @@ class Prediction:
         """The values of :meth:`labels`, per-wheel fields in driver convention (``signs``: the
         drive signs). :meth:`from_labelled` inverts it exactly (a sign flip is exact)."""
         return np.concatenate([signs * getattr(self, field) for field in WHEEL_FIELDS]
-                              + [[self.since, float(self.velocity_mode), self.load_factor]])
+                              + [[self.since, float(self.velocity_mode), self.load_factor,
+                                  self.outside_calibration]])
 
     @classmethod
     def from_labelled(cls, stamp, labels, values, wheel_names, signs):
@@ -103,9 +108,9 @@ class Prediction:
             picked = np.asarray(values, dtype=float)[[index[label] for label in wanted]]
         n = len(wheel_names)
         wheels = {field: signs * picked[j * n:(j + 1) * n] for j, field in enumerate(WHEEL_FIELDS)}
-        since, mode, load = picked[len(WHEEL_FIELDS) * n:]
+        since, mode, load, outside = picked[len(WHEEL_FIELDS) * n:]
         return cls(stamp=stamp, since=float(since), velocity_mode=bool(mode > 0.5),
-                   load_factor=float(load), **wheels)
+                   load_factor=float(load), outside_calibration=float(outside), **wheels)
 
 
 @dataclass(frozen=True)
@@ -127,6 +132,7 @@ class PredictionBatch:
     friction: np.ndarray
     unseen_friction: np.ndarray
     load_factor: np.ndarray
+    outside_calibration: np.ndarray  # (N,) as in Prediction
 
     def __len__(self):
         return len(self.stamp)
@@ -165,8 +171,9 @@ class ModelObserver:
         self._has_coulomb = bool(np.any(dyn.coulomb > 0))
         learned = (model.profile.learned or {}).get('torque')
         #: the learned torque correction (youbot_fdi.fdi.learned), None: physics only
-        self.correction = (None if learned is None or settings.physics_only else
-                           TorqueCorrection.from_mapping(learned, self.n, str(model.profile.source)))
+        self.correction = (None if learned is None or settings.physics_only else replace(
+            TorqueCorrection.from_mapping(learned, self.n, str(model.profile.source)),
+            range_margin=settings.calibration_range_margin))
         self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
         self.signed_effort = drive.signed_effort
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
@@ -385,7 +392,8 @@ class ModelObserver:
     # ------------------------------------------------------------------ the model's torque
     # Shapes (n,) for one sample or (N, n) for a block.
     def _explained(self, velocity, prev_velocity, phi, gamma_inv, step, torque, prev_torque):
-        """(explained torque, the wheel's friction level, Coulomb torque, unseen friction) over one
+        """(explained torque, the wheel's friction level, Coulomb torque, unseen friction, wheels
+        outside the learned correction's calibration (:func:`wheel_mask`, 0 without one)) over one
         interval of ``step`` [s] (a scalar, or (N, 1)) between measured torques ``prev_torque``
         and ``torque`` (either sign: only their size is used): the torque the exactly discretised dynamics
         need for the measured speed change, with the learned correction (if any): its friction part
@@ -396,11 +404,19 @@ class ModelObserver:
         coulomb, level, unseen = self._coulomb(mean_speed)
         friction = self.friction * mean_speed + level
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity))
+        outside = np.zeros(np.shape(velocity)[:-1])
         if self.correction is not None:  # what the physics misses (see fdi/learned.py)
-            coulomb = coulomb + self.correction.friction(mean_speed)
-            explained = explained + self.correction.inertial(inertial_feature(
-                (velocity - prev_velocity) / step, torque, prev_torque, self.max_torque))
-        return explained + coulomb, friction, coulomb, unseen
+            acceleration = (velocity - prev_velocity) / step
+            if np.ndim(velocity) == 1:  # one sample (the live observer): in plain floats
+                learned_friction, learned_inertia, outside = self.correction.one_sample(
+                    mean_speed, acceleration, torque, prev_torque, self.max_torque)
+            else:
+                learned_friction, learned_inertia, seen = self.correction.applied(
+                    mean_speed, inertial_feature(acceleration, torque, prev_torque, self.max_torque))
+                outside = wheel_mask(seen)
+            coulomb = coulomb + learned_friction
+            explained = explained + learned_inertia
+        return explained + coulomb, friction, coulomb, unseen, outside
 
     def _load_votes(self, mean_torque, explained, friction):
         """Per wheel, (load part: measured minus inertial torque, friction level), zero where the
@@ -456,8 +472,8 @@ class ModelObserver:
             return None
         last_stamp, last_velocity, last_torque = self._last
         phi, gamma, gamma_inv = self._discrete(dt)
-        explained, friction, coulomb, unseen = self._explained(velocity, last_velocity, phi, gamma_inv, dt,
-                                                               torque, last_torque)
+        explained, friction, coulomb, unseen, outside = self._explained(
+            velocity, last_velocity, phi, gamma_inv, dt, torque, last_torque)
         torque = signed_torque(torque, explained, self.signed_effort)
         mean_torque = 0.5 * (torque + last_torque)
         keep = self._smoothing(dt)
@@ -481,7 +497,8 @@ class ModelObserver:
             stamp=stamp, since=last_stamp, from_currents=predicted,
             from_commands=self._command_state[:n], commands_before=before, commanded=target,
             commanded_before=self._last_target, velocity_mode=velocity_mode, explained=explained,
-            friction=friction, unseen_friction=unseen, load_factor=load)
+            friction=friction, unseen_friction=unseen, load_factor=load,
+            outside_calibration=float(outside))
         self._last_target = target
         self._last = (stamp, velocity, torque)
         return prediction
@@ -500,7 +517,7 @@ class ModelObserver:
         if rows == 0:
             empty = np.empty((0, n))
             return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 5,
-                                   velocity_mode, empty, empty, empty, np.empty(0))
+                                   velocity_mode, empty, empty, empty, np.empty(0), np.empty(0))
         first = self._last is None
         if first:
             self._restart(stamp[0], velocity[0], torque[0], velocity_mode[0], target[0])
@@ -515,7 +532,7 @@ class ModelObserver:
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]
-        explained, friction, coulomb, unseen = self._explained(
+        explained, friction, coulomb, unseen, outside = self._explained(
             velocity, prev_velocity, phi, gamma_inv, step, torque,
             np.concatenate([last_torque[None], torque[:-1]]))
         torque = signed_torque(torque, explained, self.signed_effort)
@@ -556,7 +573,7 @@ class ModelObserver:
             commands_before=np.concatenate([command_before[None, :n], speed[:-1]]),
             commanded=target, commanded_before=np.concatenate([self._last_target[None], target[:-1]]),
             velocity_mode=velocity_mode, explained=explained, friction=friction,
-            unseen_friction=unseen, load_factor=load)
+            unseen_friction=unseen, load_factor=load, outside_calibration=outside)
         self._last = (stamp[-1], velocity[-1], torque[-1])
         self._observer, self._command_state = observer[-1], path[-1]
         self._load = (smoothed[-1], float(load[-1]))

@@ -12,7 +12,7 @@ import yaml
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import DecisionMaker
-from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator
+from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator, ResidualSpread
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model, load_profile, PlatformModel
 from youbot_fdi.samples import CommandBatch, RepeatedMessages
@@ -79,6 +79,7 @@ class ReplayResult:
     counters: dict  # the reader's message counters (used, skipped ...) and the generator's restarts
     has_commands: bool  # the recording had the command topic
     damage: object = None  # youbot_fdi.bag.salvage.Damage of a damaged recording, else None
+    spread: object = None  # youbot_fdi.fdi.residuals.ResidualSpread of the residuals
 
 
 class FdiPipeline:
@@ -106,6 +107,8 @@ class FdiPipeline:
         self.generator = ResidualGenerator(model, settings)
         self.decision = DecisionMaker(model.wheel_names, settings, residual_data)
         self._kept = [] if keep_frames else None
+        #: the pooled RMS of every residual family so far
+        self.spread = ResidualSpread()
         self._last_stamp = None
         #: re-sent /joint_states messages, left out (youbot_fdi.samples.RepeatedMessages)
         self.repeated = RepeatedMessages()
@@ -151,6 +154,7 @@ class FdiPipeline:
             applied = upto
             if self._kept is not None and len(batch):
                 self._kept.append(batch)
+            self.spread.add(batch)
             events += self.decision.update_batch(batch)
         if (self._last_stamp is not None and len(commands)
                 and commands.stamp.max() - self._last_stamp > self.settings.data_timeout):
@@ -178,4 +182,4 @@ class FdiPipeline:
                         on_event(event)
             return ReplayResult(events, {**reader.counters, **self.generator.counters,
                                          'messages_repeated': self.repeated.count},
-                                reader.has_commands, reader.damage)
+                                reader.has_commands, reader.damage, self.spread)

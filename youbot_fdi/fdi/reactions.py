@@ -13,7 +13,7 @@ import json
 import numpy as np
 
 from youbot_fdi.errors import ConfigError
-from youbot_fdi.faults import FaultKind
+from youbot_fdi.faults import CONDITIONS, FaultKind
 from youbot_fdi.model.allocation import Allocation, AllocationError
 from youbot_fdi.model.kinematics import limit_wheel_speeds
 
@@ -151,7 +151,8 @@ class Reactor:
         """Take a fault event; returns the reactions it starts or ends (in order). An ERROR starts
         its fault's action (replacing that component's previous one); an OK (cleared, or the
         decision's reset) ends it."""
-        if not self.settings.react or event.level not in ('ERROR', 'OK'):
+        if (not self.settings.react or event.level not in ('ERROR', 'OK')
+                or event.fault in CONDITIONS):  # a base condition, not a fault: nothing to do
             return []
         component = event.wheel
         previous = self._active.pop(component, None)

@@ -113,11 +113,82 @@ def _figures(directory, model, data, events):
     return written
 
 
+#: Bins of the operating-point figure (the bound's median per bin is drawn).
+OPERATING_POINT_BINS = 40
+
+
+def _binned_band(ax, x, bound):
+    """The bound's median per quantile bin of ``x``, drawn as a band around 0."""
+    finite = np.isfinite(x) & np.isfinite(bound)
+    if np.count_nonzero(finite) <= OPERATING_POINT_BINS:
+        return
+    x, bound = x[finite], bound[finite]
+    edges = np.quantile(x, np.linspace(0.0, 1.0, OPERATING_POINT_BINS + 1))
+    which = np.clip(np.searchsorted(edges, x) - 1, 0, OPERATING_POINT_BINS - 1)
+    filled = [b for b in range(OPERATING_POINT_BINS) if np.any(which == b)]
+    typical = np.array([np.median(bound[which == b]) for b in filled])
+    ax.fill_between([np.median(x[which == b]) for b in filled], -typical, typical,
+                    color='tab:blue', alpha=0.15, label='bound (median)')
+
+
+def _operating_point_figure(directory, model, residuals, correction):
+    """The torque residual and its bound against the operating point of each wheel (its mean
+    speed and its acceleration over the interval), with the learned correction's parts and the
+    ranges its calibration covered (issue 12); ``correction`` None: the physics alone. Returns
+    the path, or None without data."""
+    plt = pyplot()
+    if plt is None or residuals is None or len(residuals) < 2:
+        return None
+    names, n = model.wheel_names, len(model.wheel_names)
+    interval = np.diff(residuals.stamp)[:, None]
+    points = (0.5 * (residuals.velocity[1:] + residuals.velocity[:-1]),
+              np.diff(residuals.velocity, axis=0) / np.where(interval > 0.0, interval, np.nan))
+    value, bound = residuals.values['torque'][1:], residuals.bounds['torque'][1:]
+    outside = residuals.outside_calibration[1:].astype(np.int64)
+    fig, axes = plt.subplots(2, n, figsize=(3.4 * n, 6.4), sharey=True, constrained_layout=True,
+                             squeeze=False)
+    rows = (('mean wheel speed [rad/s]', 'friction', 'speed_range', (0, 1, 2)),
+            ('wheel acceleration [rad/s²]', 'inertial', 'acceleration_range', (3,)))
+    for row, (label, part, span, columns) in enumerate(rows):
+        x = points[row]
+        for w in range(n):
+            ax = axes[row, w]
+            flagged = (outside >> w & 1).astype(bool)
+            ax.plot(x[~flagged, w], value[~flagged, w], '.', ms=1.5, color='0.45', label='residual')
+            if flagged.any():
+                ax.plot(x[flagged, w], value[flagged, w], '.', ms=2, color='tab:orange',
+                        label='outside calibration: physics only')
+            _binned_band(ax, x[:, w], bound[:, w])
+            if correction is not None and np.any(correction.weights[w, list(columns)] != 0.0):
+                grid = np.zeros((200, n))
+                grid[:, w] = np.linspace(np.nanmin(x[:, w]), np.nanmax(x[:, w]), len(grid))
+                ax.plot(grid[:, w], getattr(correction, part)(grid)[:, w], color='tab:green',
+                        lw=1.5, label=f'learned {part} part')
+                covered = getattr(correction, span)
+                if covered is not None:
+                    low, high = covered[w]
+                    widen = correction.range_margin * (high - low)
+                    ax.axvspan(low - widen, high + widen, color='tab:green', alpha=0.07,
+                               label='calibrated range')
+            ax.set(xlabel=f'{wheel_suffix(names[w])}: {label}')
+        axes[row, 0].set_ylabel('torque residual [N·m]')
+        axes[row, 0].legend(fontsize=7, loc='upper left', markerscale=4)
+    fig.suptitle('Torque residual and bound against the operating point'
+                 + (' with the learned correction' if correction is not None else ' (physics only)'))
+    path = directory / 'operating_point.png'
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def write_report(directory, model, pipeline, events, source):
     """Write figures and ``index.html`` for a replay; returns the index path."""
     directory.mkdir(parents=True, exist_ok=True)
-    data = _series(pipeline.residuals())
+    residuals = pipeline.residuals()
+    data = _series(residuals)
     figures = _figures(directory, model, data, events)
+    figure = _operating_point_figure(directory, model, residuals, pipeline.generator.correction)
+    figures += [figure] if figure is not None else []
     rows = ''.join(f'<tr><td>{e.stamp:.3f}</td><td>{e.level}</td><td>{html.escape(str(e.wheel))}'
                    f'</td><td>{e.fault}</td><td>{html.escape(", ".join(e.residuals))}</td>'
                    f'<td>{html.escape(e.detail)}</td></tr>' for e in events)

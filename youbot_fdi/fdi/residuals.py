@@ -34,6 +34,7 @@ together (the replay, the fused ``observer`` node). Each has ``update_batch`` fo
 at once (the replay) and ``update``, the same computation for one sample (the live nodes).
 """
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -102,6 +103,8 @@ class ResidualFrame:
     effort_frozen: np.ndarray  # consecutive samples with the effort unchanged too (n,) int
     position_frozen: np.ndarray  # consecutive samples with the position unchanged while moving (n,)
     load_factor: float = 1.0  # the platform-wide friction/load condition (1: as identified) [-]
+    #: wheels outside the learned correction's calibrated range (bit mask, see Prediction)
+    outside_calibration: float = 0.0
 
     def names(self, wheel_names):
         """Residual names in family-major order, e.g. ``torque_fl``."""
@@ -131,8 +134,9 @@ class ResidualFrame:
         for prefix, array in SIGNALS:
             labels += [f'{prefix}_{s}' for s in suffixes]
             signals.append(np.asarray(getattr(self, array), dtype=float))
-        labels += ['command_mode', 'load_factor']
-        signals.append(np.array([1.0 if self.command_mode == 'velocity' else 0.0, self.load_factor]))
+        labels += list(SCALAR_SIGNALS)
+        signals.append(np.array([1.0 if self.command_mode == 'velocity' else 0.0, self.load_factor,
+                                 self.outside_calibration]))
         extra = np.concatenate(signals)
         return (labels, np.concatenate([values, extra]),
                 np.concatenate([bounds, np.full(len(extra), np.nan)]))
@@ -152,7 +156,7 @@ class ResidualFrame:
                 raise ValueError(msg) from None
 
         signals = {array: pick(prefix, values) for prefix, array in SIGNALS}
-        for label in ('command_mode', 'load_factor'):
+        for label in SCALAR_SIGNALS:
             if label not in index:
                 msg = f'residual vector lacks {label}'
                 raise ValueError(msg)
@@ -164,13 +168,16 @@ class ResidualFrame:
                    command=signals['command'],
                    frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int),
                    position_frozen=signals['position_frozen'].astype(int),
-                   load_factor=float(values[index['load_factor']]))
+                   load_factor=float(values[index['load_factor']]),
+                   outside_calibration=float(values[index['outside_calibration']]))
 
 
 
+#: The scalar signals of a labelled residual vector, after the per-wheel ones.
+SCALAR_SIGNALS = ('command_mode', 'load_factor', 'outside_calibration')
 #: The per-row arrays of a ResidualBatch besides ``values`` and ``bounds``.
 ROW_ARRAYS = ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen', 'effort_frozen',
-              'position_frozen', 'load_factor', 'command_speed')
+              'position_frozen', 'load_factor', 'command_speed', 'outside_calibration')
 
 
 @dataclass(frozen=True)
@@ -193,6 +200,7 @@ class ResidualBatch:
     position_frozen: np.ndarray
     load_factor: np.ndarray
     command_speed: np.ndarray
+    outside_calibration: np.ndarray  # (N,) wheels outside the learned range (bit mask)
     features: dict = None
 
     def __len__(self):
@@ -205,7 +213,8 @@ class ResidualBatch:
             bounds={f: b[k] for f, b in self.bounds.items()}, velocity=self.velocity[k],
             torque=self.torque[k], command_mode=VELOCITY if self.velocity_mode[k] else 'effort',
             command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k],
-            position_frozen=self.position_frozen[k], load_factor=float(self.load_factor[k]))
+            position_frozen=self.position_frozen[k], load_factor=float(self.load_factor[k]),
+            outside_calibration=float(self.outside_calibration[k]))
 
     def select(self, rows):
         """The rows ``rows`` (index array, mask or slice) as a batch."""
@@ -377,7 +386,8 @@ class ResidualEvaluator:
                     'command': command_u, 'encoder': self.bound('encoder', encoder_f)},
             velocity=velocity, torque=torque, command_mode=VELOCITY if p.velocity_mode else 'effort',
             command=p.commanded, frozen=self._frozen, effort_frozen=self._effort_frozen,
-            position_frozen=self._position_frozen, load_factor=p.load_factor)
+            position_frozen=self._position_frozen, load_factor=p.load_factor,
+            outside_calibration=p.outside_calibration)
 
     def update_batch(self, joints, predictions):
         """Residuals of a block of samples (:class:`~youbot_fdi.samples.JointBatch`) and their
@@ -389,7 +399,7 @@ class ResidualEvaluator:
         if rows == 0:
             empty = np.empty((0, n))
             return _batch(joints.stamp, *(empty,) * 10, p.velocity_mode, empty,
-                          *(empty.astype(int),) * 3, np.empty(0), empty, {})
+                          *(empty.astype(int),) * 3, np.empty(0), empty, np.empty(0), {})
         stamp = joints.stamp
         position, velocity, torque = (self.signs * a for a in
                                       (joints.position, joints.velocity, joints.effort))
@@ -435,17 +445,47 @@ class ResidualEvaluator:
                        velocity - p.from_currents, self.bound('observer', observer_f), command_r,
                        command_u, encoder_r, self.bound('encoder', encoder_f), velocity, torque,
                        p.velocity_mode, p.commanded, frozen, effort_frozen, position_frozen,
-                       p.load_factor, p.from_commands, features)
+                       p.load_factor, p.from_commands, p.outside_calibration, features)
         return batch.select(~restart) if restart.any() else batch
+
+
+class ResidualSpread:
+    """The pooled RMS of each residual family over the batches added (rows and wheels; NaN left
+    out): the spread ``identify`` and the fault benchmark print, physics-only against learned."""
+
+    def __init__(self):
+        self._sums = dict.fromkeys(FAMILIES, 0.0)
+        self._counts = dict.fromkeys(FAMILIES, 0)
+
+    def add(self, batch):
+        """Add a :class:`ResidualBatch`; returns self."""
+        for family, values in batch.values.items():
+            finite = values[np.isfinite(values)]
+            self._sums[family] += float(np.sum(finite ** 2))
+            self._counts[family] += finite.size
+        return self
+
+    def merge(self, other):
+        """Pool another spread into this one; returns self."""
+        for family in FAMILIES:
+            self._sums[family] += other._sums[family]
+            self._counts[family] += other._counts[family]
+        return self
+
+    def rms(self):
+        """{family: RMS}, NaN for a family without a finite value."""
+        return {f: math.sqrt(self._sums[f] / self._counts[f]) if self._counts[f] else math.nan
+                for f in FAMILIES}
 
 
 def _batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u, encoder_r,
            encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen,
-           position_frozen, load_factor, command_speed, features):
+           position_frozen, load_factor, command_speed, outside_calibration, features):
     values = dict(zip(FAMILIES, (torque_r, observer_r, command_r, encoder_r)))
     bounds = dict(zip(FAMILIES, (torque_u, observer_u, command_u, encoder_u)))
     return ResidualBatch(stamp, values, bounds, velocity, torque, velocity_mode, target, frozen,
-                         effort_frozen, position_frozen, load_factor, command_speed, features)
+                         effort_frozen, position_frozen, load_factor, command_speed,
+                         outside_calibration, features)
 
 
 class ResidualGenerator:

@@ -23,6 +23,11 @@ class FdiSettings:
 
     profile: str = 'youbot'
     physics_only: bool = False  # ignore learned corrections in a parameter file (ablation)
+    #: a learned correction holds within the operating range of its calibration widened by this
+    #: share of the range's span on each side; outside it, the physics alone [-]
+    calibration_range_margin: float = 0.1
+    #: the WARN "operating point not seen in calibration" ends after this long back inside [s]
+    unseen_release: float = 1.0
     residual_file: str = ''  # default: config/residuals/<profile's structural model>.yaml
     # torque_<w>: measured minus explained wheel torque [N·m]
     torque_sigma: float = 0.04

@@ -18,6 +18,8 @@ as a labelled vector (sensor_msgs/JointState stamped like the sample, ``name`` t
 ``since``              stamp of the sample before: the interval the prediction spans [s]
 ``velocity_mode``      1 velocity mode, 0 current mode
 ``load_factor``        the platform-wide friction/load condition (1: as identified) [-]
+``outside_calibration`` wheels whose operating point the learned correction's calibration
+                       did not cover (bit w for wheel w; physics only for them) [-]
 =====================  ======================================================================
 
 The ``residual_generator`` node turns a sample and its prediction into /youbot_fdi/residuals.
