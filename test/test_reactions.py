@@ -95,6 +95,19 @@ def test_reactor_follows_the_policy_and_reset_ends_it(tmp_path):
     assert runaway[0].to_dict()['level'] == 'INFO' and 'action' in runaway[0].to_dict()
 
 
+
+@pytest.mark.parametrize('condition', ['load_change', 'unseen_operating_point'])
+def test_a_base_condition_neither_starts_nor_ends_a_reaction(condition):
+    """The base's WARN/OK conditions share the base's component (wheel null) with comm_loss:
+    their OK must not end the stop a comm_loss started."""
+    reactor = Reactor(load_model('youbot').kinematics, ReactionSettings(react=True))
+    assert reactor.on_event(event('ERROR', None, 'comm_loss'))[0].action == 'stop'
+    assert reactor.on_event(event('WARN', None, condition, 1.5)) == []
+    assert reactor.on_event(event('OK', None, condition, 2.0)) == [] and reactor.stopped
+    assert [r.action for r in reactor.on_event(event('OK', None, 'comm_loss', 3.0))] == ['end_stop']
+    assert not reactor.stopped
+
+
 def test_degrading_a_base_that_would_lose_rank_stops_it_instead():
     robotino = load_model('robotino').kinematics
     reactor = Reactor(robotino, ReactionSettings(react=True))
