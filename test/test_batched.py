@@ -450,7 +450,7 @@ def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
     their alarms on the faulty wheels (the cases are what they say)."""
     from youbot_fdi.bench.speed import bench_replay, REPLAY_WHEELS
     seconds = 12.0
-    *cases, live = bench_replay(progress=lambda text: None, seconds=seconds)
+    *cases, live, learned = bench_replay(progress=lambda text: None, seconds=seconds)
     names = [c.name for c in cases]
     assert names == ['replay: fault-free', 'replay: fault-free, mcap', 'replay: a fault at 10 %',
                      'replay: faults on two wheels', 'replay: fault-free, no --params']
@@ -460,7 +460,8 @@ def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
     assert REPLAY_WHEELS[0] in cases[2].note
     samples = seconds / 0.01  # the drive at the shim's 100 Hz
     assert live.baseline == pytest.approx(cases[0].value * 1e6 / samples, rel=0.05)  # µs per sample
-    for result in (*cases, live):
+    assert learned.value == live.value and learned.baseline_name == 'the same, physics only'
+    for result in (*cases, live, learned):
         assert result.value > 0 and result.baseline > 0 and math.isfinite(result.ratio)
 
 
