@@ -24,7 +24,8 @@ def add_parser(subparsers):
     parser.add_argument('--events', help='write the fault events seen on /youbot_fdi/faults here')
     parser.add_argument('--script', help='drive script YAML (default: config/demo.yaml)')
     parser.add_argument('--record', metavar='DIR',
-                        help='also record /joint_states and /wheel_commands as a rosbag2 recording')
+                        help='also record /joint_states and /wheel_commands of the drive (from its start) '
+                             'as a rosbag2 recording')
     layout = parser.add_mutually_exclusive_group()
     layout.add_argument('--composed', dest='layout', action='store_const', const='composed',
                         help='the FDI nodes in this process and executor (youbot_fdi_suite)')

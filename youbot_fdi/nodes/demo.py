@@ -137,12 +137,15 @@ class DemoDriverNode(Node):
 
     def on_joint_states(self, msg):
         self.last_state = msg
-        if self.recorder is not None:
+        if self.recorder is not None and self.start is not None:  # the drive, as the nodes saw it
             self.recorder.joint_state(self._stamp(msg.header.stamp), msg.position, msg.velocity,
                                       msg.effort)
 
     def on_wheel_commands(self, msg):
-        """Recorded with the receive time, as the observer stamps commands."""
+        """Recorded with the receive time, as the observer stamps commands (from the drive's
+        start, as the joint states: the nodes' start-up, when nothing watched, is not recorded)."""
+        if self.start is None:
+            return
         if msg.velocity:
             self.recorder.wheel_command(now_seconds(self), 'velocity', msg.velocity)
         elif msg.effort:
