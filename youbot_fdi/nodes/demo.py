@@ -44,6 +44,12 @@ STATUS_PERIOD = 1.0  # console line [s]
 SETTLE_AFTER = 1.0  # keep running after the script ends [s]
 LAYOUT_CHOICES = ('separate', 'composed', 'fused')
 PROCESS_START_TIMEOUT = 60.0  # [s] for the FDI node processes to appear on the graph
+#: With the FDI nodes as processes, the drive starts once residuals have arrived for this long
+#: [s] without a gap longer than PIPELINE_GAP [s]: processes that have just started keep the CPU
+#: busy for a moment and the shim's stream, on two cores, stalls by up to a quarter second then
+#: (a base comm_loss in a test run on a fresh clone). The base stands still meanwhile.
+PIPELINE_WARMUP = 1.0
+PIPELINE_GAP = 0.1
 
 
 @dataclass(frozen=True)
@@ -90,6 +96,8 @@ class DemoDriverNode(Node):
             self.recorder = RecordingWriter(plan.record, base.model.wheel_names)
             self.create_subscription(JointState, WHEEL_COMMANDS, self.on_wheel_commands, 10)
         self.done = False
+        self._residuals_seen = None  # while warming up: (first, last) arrival of a steady run [s]
+        self._warmup = None  # the residual subscription of the warm-up
         self._next_status = 0.0
         self.create_timer(1.0 / COMMAND_RATE, self.on_timer)
 
@@ -111,9 +119,26 @@ class DemoDriverNode(Node):
         return all(self.count_publishers(topic) > 0 and self.count_subscribers(topic) > 0
                    for topic in (WHEEL_COMMANDS, PREDICTED, RESIDUALS))
 
+    def _flowing(self):
+        """True once residuals have flowed for PIPELINE_WARMUP without a gap (see there)."""
+        if self._warmup is None:
+            self._warmup = self.create_subscription(JointState, RESIDUALS, self._on_residuals,
+                                                    SENSOR_QOS)
+            return False
+        seen, now = self._residuals_seen, now_seconds(self)
+        if seen is None or now - seen[1] > PIPELINE_GAP or now - seen[0] < PIPELINE_WARMUP:
+            return False
+        self.destroy_subscription(self._warmup)
+        return True
+
+    def _on_residuals(self, _msg):
+        now = now_seconds(self)
+        seen = self._residuals_seen
+        self._residuals_seen = (now if seen is None or now - seen[1] > PIPELINE_GAP else seen[0], now)
+
     def on_timer(self):
         if self.start is None:
-            if self.waits_for and not self._connected():
+            if self.waits_for and not (self._connected() and self._flowing()):
                 return
             self.start = now_seconds(self)
         t = self.elapsed()
