@@ -175,3 +175,25 @@ def test_demo_plan_carries_fault_magnitudes_and_bridge_limits():
     assert DemoPlan(SCRIPT, None, 'wheel_joint_fl', 1.0).bridge_parameters() == {}
     with pytest.raises(ConfigError, match='torque_loss_gain'):
         VirtualBaseSettings(torque_loss_gain=1.5).validate()
+
+
+def test_events_before_the_drive_are_kept_apart_and_logged(tmp_path):
+    """What the decision says while the node processes start (the base standing, before the
+    drive) is kept in before_drive, not among the drive's events; the events file has both."""
+    from types import SimpleNamespace
+    from youbot_fdi.fdi.decision import FaultEvent
+    from youbot_fdi.fdi.eventlog import EventLog
+    from youbot_fdi.nodes.demo import DemoDriverNode
+    log = EventLog(tmp_path / 'events.jsonl')
+    driver = SimpleNamespace(start=None, before_drive=[], events=[], log=log)
+    stall = FaultEvent(10.0, 'ERROR', None, 'comm_loss')
+    import math
+    assert math.isnan(DemoDriverNode._record(driver, stall, driver.events))  # no drive time yet
+    assert DemoDriverNode._record(driver, stall, driver.events) is None  # seen already
+    driver.start = 11.0
+    stuck = FaultEvent(12.5, 'ERROR', 'wheel_joint_bl', 'stuck')
+    assert DemoDriverNode._record(driver, stuck, driver.events) == 1.5
+    log.close()
+    assert driver.before_drive == [stall] and driver.events == [stuck]
+    assert [json.loads(line)['fault'] for line in (tmp_path / 'events.jsonl').read_text().splitlines()] == [
+        'comm_loss', 'stuck']

@@ -84,6 +84,7 @@ def write_summary(path, args, run, alarms, tracking):
         'detection_delay_s': None if first is None else round(first.stamp - run.injected_at, 4),
         'alarms': [e.to_dict() for e in alarms],
         'reactions': [r.to_dict() for r in run.reactions],
+        'before_drive': [item.to_dict() for item in run.before_drive],
         'tracking_rms_linear_mps': None if tracking is None else round(tracking[0], 5),
         'tracking_rms_angular_radps': None if tracking is None else round(tracking[1], 5),
         'tracking_from': tracking_window(args, run)[1],
@@ -139,11 +140,16 @@ def run(args):
         print(f'  RMS tracking error from {window}: {tracking[0]:.3f} m/s, {tracking[1]:.3f} rad/s')
     if run.reactions:
         print('  reactions: ' + ', '.join(f'{r.action} ({r.wheel or "base"})' for r in run.reactions))
+    if run.before_drive:
+        print('  before the drive, while the nodes started (not counted above): '
+              + ', '.join(f'{getattr(e, "action", None) or e.level} {e.wheel or "base"}: {e.fault}'
+                          for e in run.before_drive))
     if args.summary:
         write_summary(args.summary, args, run, alarms, tracking)
         print(f'  summary: {args.summary}')
     if args.events:
-        print(f'  events: {args.events} ({len(events) + len(run.reactions)} lines)')
+        print(f'  events: {args.events} '
+              f'({len(events) + len(run.reactions) + len(run.before_drive)} lines)')
     if args.record:
         print(f'  recording: {args.record} (try: youbot-fdi replay {args.record} --events E.jsonl)')
     return 0

@@ -87,6 +87,8 @@ class DemoDriverNode(Node):
         self.tracking = []
         self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
         self.events, self.injected_at, self.last_state = [], None, None
+        #: events and reactions before the drive started (the nodes starting up), kept apart
+        self.before_drive = []
         self.start = None
         self.recorder = None
         if plan.record:
@@ -196,8 +198,11 @@ class DemoDriverNode(Node):
         return [e for e in state.values() if e.level == 'ERROR']
 
     def _record(self, item, seen):
-        """Keep a new event or reaction ``item`` in ``seen`` and the log file; its time since the
-        start [s] (NaN before the start), or None when it was seen already."""
+        """Keep a new event or reaction ``item`` in ``seen`` (before the drive: in
+        ``before_drive``) and the log file; its time since the start [s] (NaN before the start),
+        or None when it was seen already."""
+        if self.start is None:
+            seen = self.before_drive
         if item in seen:
             return None
         seen.append(item)
@@ -261,6 +266,7 @@ class DemoRun:
     start: object
     reactions: list
     tracking: list
+    before_drive: list = ()  # events and reactions while the nodes started, before the drive
 
     def tracking_error(self, since):
         """RMS body-velocity tracking error from ``since`` [s] to the end: (linear [m/s],
@@ -324,7 +330,7 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         for _ in range(20):  # deliver the last fault messages
             executor.spin_once(timeout_sec=0.01)
         return DemoRun(list(driver.events), driver.injected_at, driver.start,
-                       list(driver.reactions), list(driver.tracking))
+                       list(driver.reactions), list(driver.tracking), list(driver.before_drive))
     finally:
         stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)
