@@ -5,14 +5,15 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from youbot_fdi.cli.main import main  # noqa: E402
+from fresh_process import in_fresh_process, run_demo_fresh  # noqa: E402
 from youbot_fdi.fdi.pipeline import build_pipeline  # noqa: E402
 from youbot_fdi.model.scenario import load_script  # noqa: E402
-from youbot_fdi.nodes.demo import DemoPlan, run_demo  # noqa: E402
+from youbot_fdi.nodes.demo import DemoPlan  # noqa: E402
 
 _, SCRIPT = load_script()
 SCRIPT_NAMES = ('wheel_joint_fl', 'wheel_joint_fr', 'wheel_joint_bl', 'wheel_joint_br')  # youBot order
 LIVE_DELAY = 0.15  # [s] live detection allows for executor scheduling on a shared 2-core machine
+# Each demo runs in a fresh interpreter, as `youbot-fdi demo` does (why: fresh_process.py).
 
 
 def alarms(events):
@@ -22,7 +23,7 @@ def alarms(events):
 def test_injected_fault_is_detected_and_isolated_live(tmp_path):
     plan = DemoPlan(SCRIPT.scaled_to(6.0), 'stuck', 'wheel_joint_bl', 3.0, console=False,
                     record=tmp_path / 'live')
-    run = run_demo(plan)
+    run = run_demo_fresh(plan)
     events, injected_at = run.events, run.injected_at
     found = alarms(events)
     assert found, 'nothing detected'
@@ -43,19 +44,23 @@ def test_one_process_layouts_detect_the_demo_fault(layout):
     same fault on the same wheel."""
     plan = DemoPlan(SCRIPT.scaled_to(5.0), 'stuck', 'wheel_joint_fl', 2.5, console=False,
                     layout=layout)
-    run = run_demo(plan)
+    run = run_demo_fresh(plan)
     events, injected_at = run.events, run.injected_at
     found = alarms(events)
     assert found and (found[0].wheel, found[0].fault) == ('wheel_joint_fl', 'stuck')
     assert 0.0 <= found[0].stamp - injected_at <= LIVE_DELAY
 
 
-def test_demo_command_writes_contract_events(tmp_path, capsys):
+def test_demo_command_writes_contract_events(tmp_path):
+    import subprocess
+    import sys
     events = tmp_path / 'events.jsonl'
-    assert main(['demo', '--fault', 'torque_loss', '--wheel', 'wheel_joint_fr', '--at', '2',
-                 '--duration', '5', '--events', str(events), '--quiet']) == 0
-    out = capsys.readouterr().out
-    assert 'detected on wheel_joint_fr' in out
+    result = subprocess.run([sys.executable, '-m', 'youbot_fdi.cli.main', 'demo', '--fault',
+                             'torque_loss', '--wheel', 'wheel_joint_fr', '--at', '2', '--duration',
+                             '5', '--events', str(events), '--quiet'],
+                            capture_output=True, text=True, timeout=300, check=False)
+    assert result.returncode == 0, result.stderr
+    assert 'detected on wheel_joint_fr' in result.stdout
     lines = [json.loads(line) for line in events.read_text().splitlines()]
     errors = [line for line in lines if line['level'] == 'ERROR']
     assert errors and errors[0]['wheel'] == 'wheel_joint_fr'
@@ -110,7 +115,7 @@ def test_fault_free_live_drive_raises_no_alarm():
     # comm timeout (a real, separate problem, docs/nodes.md); this test is about false alarms
     plan = DemoPlan(SCRIPT.scaled_to(6.0), None, 'wheel_joint_fl', 0.0, console=False,
                     layout='composed')
-    run = run_demo(plan)
+    run = run_demo_fresh(plan)
     events, injected_at, start = run.events, run.injected_at, run.start
     assert injected_at is None and start is not None
     assert alarms(events) == []
@@ -120,15 +125,11 @@ REACTIONS = {'runaway': 'motor_off', 'stuck': 'stop', 'torque_loss': 'degrade',
              'encoder_freeze': 'substitute', 'friction': 'degrade', 'comm_loss': 'stop'}
 
 
-@pytest.mark.parametrize('fault, wheel', [('runaway', 'wheel_joint_br'), ('stuck', 'wheel_joint_fl'),
-                                          ('torque_loss', 'wheel_joint_bl'),
-                                          ('encoder_freeze', 'wheel_joint_fr'),
-                                          ('friction', 'wheel_joint_bl'), ('comm_loss', 'wheel_joint_fl')])
-def test_reactions_act_through_the_topics(fault, wheel, monkeypatch):
-    """demo --react (issue 15): the reaction is an INFO event of the right action and wheel; a
-    runaway motor's stop frame is on the bus within 100 ms of the fault event; a stopped base
-    comes to rest."""
+def _reacting_demo(plan):
+    """The demo of ``plan`` with every motor-stop (MST) frame the virtual modules execute
+    recorded: (DemoRun, [(wall time [s], wheel index)]). Runs in a fresh interpreter."""
     import time
+    from youbot_fdi.nodes.demo import run_demo
     from youbot_fdi.tmcm.tmcl import TmclCommand
     from youbot_fdi.tmcm.virtual_base import VirtualYoubot
     stops = []
@@ -139,10 +140,21 @@ def test_reactions_act_through_the_topics(fault, wheel, monkeypatch):
             stops.append((time.time(), self.modules.index(module)))
         return execute(self, module, request)
 
-    monkeypatch.setattr(VirtualYoubot, '_execute', recording)
+    VirtualYoubot._execute = recording
+    return run_demo(plan), stops
+
+
+@pytest.mark.parametrize('fault, wheel', [('runaway', 'wheel_joint_br'), ('stuck', 'wheel_joint_fl'),
+                                          ('torque_loss', 'wheel_joint_bl'),
+                                          ('encoder_freeze', 'wheel_joint_fr'),
+                                          ('friction', 'wheel_joint_bl'), ('comm_loss', 'wheel_joint_fl')])
+def test_reactions_act_through_the_topics(fault, wheel):
+    """demo --react (issue 15): the reaction is an INFO event of the right action and wheel; a
+    runaway motor's stop frame is on the bus within 100 ms of the fault event; a stopped base
+    comes to rest."""
     plan = DemoPlan(SCRIPT.scaled_to(8.0), fault, wheel, 3.0, console=False, layout='composed',
                     react=True)
-    run = run_demo(plan)
+    run, stops = in_fresh_process(_reacting_demo, plan)
     assert {e.wheel for e in alarms(run.events)} == {wheel}
     named = [e for e in alarms(run.events) if e.fault == fault]  # the type may be refined later
     assert named, f'{fault} never named: {alarms(run.events)}'

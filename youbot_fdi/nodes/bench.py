@@ -26,8 +26,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.nodes.common import (keep_discovery_local, SENSOR_QOS, shutdown_nodes,
-                                     stamp_to_seconds, stop_node_processes, STREAM_QOS)
+from youbot_fdi.nodes.common import (freeze_startup_heap, keep_discovery_local, SENSOR_QOS,
+                                     shutdown_nodes, stamp_to_seconds, stop_node_processes,
+                                     STREAM_QOS)
 from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
@@ -242,6 +243,7 @@ def worker_main(argv=None):
             Relay(args.index, args.source, args.target))
     executor = make_executor(os.environ.get(EXECUTOR_VARIABLE, 'single'))
     executor.add_node(node)
+    freeze_startup_heap()
     try:
         executor.spin()
     except KeyboardInterrupt:

@@ -1,5 +1,6 @@
 """Helpers shared by the nodes: parameters from settings dataclasses, QoS, diagnostics, main()."""
 import dataclasses
+import gc
 import sys
 
 import rclpy
@@ -151,6 +152,19 @@ def shutdown_nodes(executor, nodes, context=None):
     rclpy.try_shutdown(context=context)
 
 
+def freeze_startup_heap():
+    """Move every object alive now (modules, models, nodes) out of the garbage collector's view.
+
+    A full collection scans every tracked object: with the FDI nodes built that is 60 000
+    objects and 20–28 ms on the 2-core dev machine, several times that on the youBot's Atom,
+    a stall of the 100 Hz stream. Start-up objects live as long as the process, so after
+    construction they are frozen (:func:`gc.freeze`) and collections see only what spinning
+    allocates. Call once, after the nodes exist and before spinning.
+    """
+    gc.collect()
+    gc.freeze()
+
+
 def spin_nodes(factories, args=None):
     """Create nodes with ``factories`` (callables -> Node) and spin them in one executor.
 
@@ -165,6 +179,7 @@ def spin_nodes(factories, args=None):
         for factory in factories:
             nodes.append(factory())
             executor.add_node(nodes[-1])
+        freeze_startup_heap()
         executor.spin()
     except KeyboardInterrupt:
         pass

@@ -29,8 +29,8 @@ import rclpy
 
 from youbot_fdi.fdi.eventlog import EventLog
 from youbot_fdi.model.kinematics import tracking_rms
-from youbot_fdi.nodes.common import (keep_discovery_local, LATCHED_QOS, now_seconds, SENSOR_QOS,
-                                     shutdown_nodes, stop_node_processes)
+from youbot_fdi.nodes.common import (freeze_startup_heap, keep_discovery_local, LATCHED_QOS,
+                                     now_seconds, SENSOR_QOS, shutdown_nodes, stop_node_processes)
 from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
 from youbot_fdi.nodes.conversions import event_from_status, reaction_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
@@ -315,6 +315,7 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         nodes.append(driver)
         for node in nodes:
             executor.add_node(node)
+        freeze_startup_heap()
         start_deadline = time.monotonic() + PROCESS_START_TIMEOUT
         while driver.start is None and time.monotonic() < start_deadline:
             executor.spin_once(timeout_sec=0.01)
