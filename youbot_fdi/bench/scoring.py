@@ -52,7 +52,8 @@ def score(case, events):
             'isolated': first is not None and first.wheel == case.wheel,
             'named': first is not None and (case.expected is None or named == case.expected),
             'named_as': named,
-            'delay': max(0.0, first.stamp - case.onset) if first is not None else math.nan,
+            'delay': (max(0.0, first.stamp - case.onset) if first is not None
+                      and not math.isnan(case.onset) else math.nan),  # onset NaN: never visible
             'warnings': sum(e.level == 'WARN' and e.fault == LOAD_CHANGE for e in events),
             'unseen_warnings': sum(e.level == 'WARN' and e.fault == UNSEEN_OPERATING_POINT
                                    for e in events)}

@@ -164,9 +164,11 @@ def _chain(variation):
 
 
 def _run_case(case):
-    """One recording, replayed with each variant's parameters; returns {variant: result dict}
-    (runs in a worker process)."""
-    from youbot_fdi.tmcm.recordings import record_drive
+    """One recording, replayed with each variant's parameters and scored by the suites' one rule
+    (:func:`~youbot_fdi.bench.scoring.replay_scored`); returns {variant: result dict} (runs in a
+    worker process)."""
+    from youbot_fdi.bench.scoring import Case, replay_scored
+    from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
     variation, mode, fault, wheel, seed, workdir, params = case
     prior = load_model('youbot')
     plant = true_model(prior, variation)
@@ -177,40 +179,17 @@ def _run_case(case):
     injected_at = float(rng.uniform(0.35, 0.6) * duration) if fault else math.nan
     record_drive(path, plant, script, mode=mode, fault=fault, wheel=wheel, fault_time=injected_at,
                  **_chain(variation))
-    from youbot_fdi.fdi.pipeline import build_pipeline
-    visible = injected_at
+    visible = injected_at  # a runaway shows once its wheel's command changes
     if fault == 'runaway':
         visible = _visible_time(plant, script, plant.wheel_names.index(wheel), injected_at, mode)
-    out = {}
-    for variant, file in params.items():
-        replayed = build_pipeline(file)[1].replay(path)
-        out[variant] = {**_scored(replayed.events, variation, mode, fault, wheel, duration,
-                                  injected_at, visible, path, file),
-                        'spread': replayed.spread if fault is None else None}
-    return out
-
-
-def _scored(events, variation, mode, fault, wheel, duration, injected_at, visible, path, params):
-    """The result dict of one replay."""
-    from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP
-    onset = DEFAULT_START_STAMP + visible
-    alarms = [e for e in events if e.level == 'ERROR']
-    early = [e for e in alarms if fault is None or e.stamp < DEFAULT_START_STAMP + injected_at]
-    late = [e for e in alarms if fault is not None and e.stamp >= DEFAULT_START_STAMP + injected_at]
-    first = late[0] if late else None
-    named = None
-    if first is not None:
-        episode = [e for e in late if e.wheel == first.wheel and e.stamp - first.stamp <= 0.55]
-        named = episode[-1].fault
-    return {'variation': variation.index, 'mode': mode, 'fault': fault, 'wheel': wheel,
-            'fault_free_seconds': duration if fault is None else injected_at,
-            'false_alarms': len(early) + (0 if first is None else
-                                          len({e.wheel for e in late} - {wheel})),
-            'observable': not math.isnan(visible), 'detected': first is not None,
-            'isolated': first is not None and first.wheel == wheel,
-            'named': named == fault, 'named_as': named,
-            'delay': (first.stamp - onset) if first is not None and not math.isnan(visible) else math.nan,
-            'path': str(path), 'params': params}
+    scored = replay_scored(Case(path.name, str(path), duration, fault, wheel,
+                                onset=DEFAULT_START_STAMP + visible, expected=fault,
+                                start=DEFAULT_START_STAMP,
+                                injected=DEFAULT_START_STAMP + injected_at), params)
+    suite = {'variation': variation.index, 'mode': mode, 'observable': not math.isnan(visible),
+             'path': str(path)}
+    return {variant: {**result, **suite, 'params': params[variant]}
+            for variant, result in scored.items()}
 
 
 def run_fault_benchmark(variations=3, seed=0, workers=2, progress=print, workdir=None, modes=MODES):

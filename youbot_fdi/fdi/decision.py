@@ -107,6 +107,22 @@ class _Component:
     cleared: int = -1  # the classification history counts rows after this one
 
 
+def condition_changes(level, enter, leave):
+    """Where a two-state base condition changes over rows: starting at ``level`` (OK or WARN) it
+    goes to WARN at the first row of ``enter`` (N,) bool while OK and back to OK at the first row
+    of ``leave`` (N,) bool while WARN; returns [(row, new level)] in row order."""
+    changes, k = [], 0
+    while k < len(enter):
+        found = np.flatnonzero((enter if level == OK else leave)[k:])
+        if not len(found):
+            break
+        k += int(found[0])
+        level = WARN if level == OK else OK
+        changes.append((k, level))
+        k += 1
+    return changes
+
+
 class DecisionMaker:
     """Turns :class:`~youbot_fdi.fdi.residuals.ResidualFrame` s into :class:`FaultEvent` s.
 
@@ -357,20 +373,14 @@ class DecisionMaker:
         """WARN/OK events of the load condition over rows (stamps (N,), load factors (N,))."""
         departure = np.abs(np.asarray(factors, dtype=float) - 1.0)
         warn = self.settings.load_warn
-        enter, leave = departure > warn, departure < LOAD_RELEASE * warn
-        events, level, k = [], self.load_level, 0
-        while k < len(departure):
-            pending = enter if level == OK else leave
-            found = np.flatnonzero(pending[k:])
-            if not len(found):
-                break
-            k += int(found[0])
-            level = WARN if level == OK else OK
-            detail = (f'surface or load changed: friction x{factors[k]:.2f} on every wheel'
-                      if level == WARN else f'load back to normal (x{factors[k]:.2f})')
-            events.append(FaultEvent(float(stamps[k]), level, BASE, LOAD_CHANGE, ('load_factor',), detail))
-            k += 1
-        self.load_level = level
+        changes = condition_changes(self.load_level, departure > warn,
+                                    departure < LOAD_RELEASE * warn)
+        events = [FaultEvent(float(stamps[k]), level, BASE, LOAD_CHANGE, ('load_factor',),
+                             f'surface or load changed: friction x{factors[k]:.2f} on every wheel'
+                             if level == WARN else f'load back to normal (x{factors[k]:.2f})')
+                  for k, level in changes]
+        if changes:
+            self.load_level = changes[-1][1]
         return events
 
     def _range_events(self, stamps, outside):
@@ -384,13 +394,8 @@ class DecisionMaker:
         stamps = np.asarray(stamps, dtype=float)
         last_out = last_true_value(out, stamps, self._outside_stamp)
         back = ~out & (stamps - last_out >= self.settings.unseen_release)
-        events, level, k = [], self.range_level, 0
-        while k < len(stamps):
-            found = np.flatnonzero((out if level == OK else back)[k:])
-            if not len(found):
-                break
-            k += int(found[0])
-            level = WARN if level == OK else OK
+        events = []
+        for k, level in condition_changes(self.range_level, out, back):
             if level == WARN:
                 wheels = ', '.join(self.suffixes[w] for w in masked_wheels(outside[k], self.n))
                 detail = (f'operating point not seen in calibration ({wheels}): physics only '
@@ -399,8 +404,7 @@ class DecisionMaker:
                 detail = 'operating point back within the calibrated range'
             events.append(FaultEvent(float(stamps[k]), level, BASE, UNSEEN_OPERATING_POINT,
                                      ('outside_calibration',), detail))
-            k += 1
-        self.range_level = level
+            self.range_level = level
         if len(stamps):
             self._outside_stamp = float(last_out[-1])
         return events

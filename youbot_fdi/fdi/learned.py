@@ -160,10 +160,11 @@ class TorqueCorrection:
         columns = tuple(np.ascontiguousarray(self.weights[:, k]) for k in range(FEATURES))
         bounds = []
         for found, used in ((self.speed_range, FRICTION), (self.acceleration_range, INERTIA)):
-            checked = np.any(self.weights[:, list(used)] != 0.0, axis=1)
-            if found is None:
-                checked = np.zeros(len(self.weights), dtype=bool)
+            if found is None:  # a file from before the ranges: every point counts as seen
                 found = np.zeros((len(self.weights), 2))
+                checked = np.zeros(len(self.weights), dtype=bool)
+            else:  # only a wheel that keeps a part of this feature checks its range
+                checked = np.any(self.weights[:, list(used)] != 0.0, axis=1)
             widen = self.range_margin * (found[:, 1] - found[:, 0])
             bounds += [np.where(checked, found[:, 0] - widen, -np.inf),
                        np.where(checked, found[:, 1] + widen, np.inf)]
