@@ -488,3 +488,18 @@ def _batch_of(frame):
     return ResidualBatch(values={f: v[None] for f, v in frame.values.items()},
                          bounds={f: b[None] for f, b in frame.bounds.items()},
                          command_speed=frame.velocity[None], **rows)
+
+
+def test_a_firmware_scan_that_overflowed_counts_as_saturated(model):
+    """An unstable loop (a prior's gains during identify) can overflow the linear prefix scan of
+    the firmware loop to inf and NaN; NaN compares False with every limit, so such rows are
+    flagged saturated by being non-finite and stepped one by one (clipped) instead."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    observer = ModelObserver(model, FdiSettings())
+    n = observer.n
+    before = np.zeros((3, 2 * n))
+    after = np.zeros((3, 2 * n))
+    after[1, 0] = math.nan
+    after[2, n] = math.inf
+    target = np.zeros((3, n))
+    assert observer._saturated(before, after, target).tolist() == [False, True, True]

@@ -325,7 +325,8 @@ class ModelObserver:
         end_current = self.kp * (target - after[:, :n]) + self.ki * after[:, n:]
         return ((np.abs(start_current).max(axis=1) >= self.max_current)
                 | (np.abs(end_current).max(axis=1) >= self.max_current)
-                | (np.abs(after[:, n:]).max(axis=1) >= self._integral_limit))
+                | (np.abs(after[:, n:]).max(axis=1) >= self._integral_limit)
+                | ~np.isfinite(after).all(axis=1))  # a linear scan that overflowed (NaN >= x is False)
 
     def _stepped(self, state, steps, target, friction):
         """``steps`` firmware periods of the saturating PI loop from ``state`` (2n,)."""
@@ -373,9 +374,12 @@ class ModelObserver:
         states = np.empty((rows, 2 * n))
         state, k = self._command_state, 0
         while k < rows:
-            scanned = affine_recursion(a[k:], b[k:], state)
-            before = np.concatenate([state[None], scanned[:-1]])
-            bad = saturable[k:] & self._saturated(before, scanned, target[k:])
+            # An unstable loop (gains far off, e.g. a prior's during identify) overflows the
+            # linear scan; those rows are saturated and stepped one by one, so the overflow is moot.
+            with np.errstate(over='ignore', invalid='ignore'):
+                scanned = affine_recursion(a[k:], b[k:], state)
+                before = np.concatenate([state[None], scanned[:-1]])
+                bad = saturable[k:] & self._saturated(before, scanned, target[k:])
             good = int(np.argmax(bad)) if bad.any() else len(bad)
             states[k:k + good] = scanned[:good]
             k += good
