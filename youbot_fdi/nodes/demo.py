@@ -10,6 +10,7 @@ each as its own process, as ``ros2 run`` would; ``composed`` runs them in this p
 executor; ``fused`` the same with the observer computing the residuals itself.
 """
 from dataclasses import dataclass
+import gc
 import os
 from pathlib import Path
 import subprocess
@@ -335,5 +336,6 @@ def run_demo(plan, events_path=None, max_wall_time=None):
     finally:
         stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)
+        gc.unfreeze()  # a caller that runs demos in turn gets this one's objects collected
         if log is not None:
             log.close()
