@@ -1,4 +1,6 @@
-"""Scripted drives: a sequence of base twists held for given durations (demo, benchmarks, tests)."""
+"""Scripted drives: a sequence of base twists held for given durations (demo, benchmarks, tests),
+optionally reached through acceleration-limited ramps, as a velocity smoother (Nav2's
+``velocity_smoother``) hands commands to a base."""
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,10 +27,48 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class AccelerationLimit:
+    """The commanded twist's largest rate of change: ``linear`` [m/s^2] of the planar velocity
+    vector, ``angular`` [rad/s^2] of the yaw rate. A change of command is a straight-line ramp
+    in (v_x, v_y, w_z) that meets both limits, so every axis arrives together and the direction
+    of the change is kept (Nav2's velocity_smoother with ``scale_velocities``)."""
+
+    linear: float  # [m/s^2]
+    angular: float  # [rad/s^2]
+
+    def ramp_time(self, change):
+        """Duration [s] of a ramp through the twist change ``change`` (3,)."""
+        return max(float(np.hypot(change[0], change[1])) / self.linear,
+                   abs(float(change[2])) / self.angular)
+
+    @classmethod
+    def from_config(cls, raw, source='<drive script>'):
+        """Validate ``{linear: m/s^2, angular: rad/s^2}``; both > 0."""
+        if not isinstance(raw, dict) or set(raw) != {'linear', 'angular'}:
+            msg = f'{source}: max_acceleration must be a mapping with linear and angular, got {raw!r}'
+            raise ConfigError(msg)
+        values = {}
+        for key in ('linear', 'angular'):
+            value = raw[key]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not np.isfinite(value) or value <= 0.0:
+                msg = f'{source}: max_acceleration.{key} must be a finite number > 0, got {value!r}'
+                raise ConfigError(msg)
+            values[key] = float(value)
+        return cls(**values)
+
+
+@dataclass(frozen=True)
 class DriveScript:
-    """An ordered list of segments; after the last one the base is commanded to stand still."""
+    """An ordered list of segments; after the last one the base is commanded to stand still.
+
+    Without ``max_acceleration`` each segment's twist is commanded from its first instant (steps);
+    with it, the command ramps from where it stands (rest before the first segment) to each
+    segment's twist, a ramp a segment is too short for being cut off where the segment ends.
+    """
 
     segments: tuple
+    max_acceleration: object = None  # AccelerationLimit or None
 
     @property
     def duration(self):
@@ -36,8 +76,9 @@ class DriveScript:
         return float(sum(s.duration for s in self.segments))
 
     @classmethod
-    def from_config(cls, raw_segments, source='<drive script>'):
-        """Validate a list of ``{name, vx, vy, wz, duration}`` mappings."""
+    def from_config(cls, raw_segments, source='<drive script>', max_acceleration=None):
+        """Validate a list of ``{name, vx, vy, wz, duration}`` mappings and an optional
+        ``{linear, angular}`` acceleration limit (:class:`AccelerationLimit`)."""
         if not isinstance(raw_segments, list) or not raw_segments:
             msg = f'{source}: segments must be a non-empty list'
             raise ConfigError(msg)
@@ -64,7 +105,8 @@ class DriveScript:
                 raise ConfigError(msg)
             segments.append(Segment(str(raw.get('name', f'segment {index}')),
                                     tuple(values[k] for k in TWIST_KEYS), values['duration']))
-        return cls(tuple(segments))
+        limit = None if max_acceleration is None else AccelerationLimit.from_config(max_acceleration, source)
+        return cls(tuple(segments), limit)
 
     def scaled_to(self, duration):
         """The same script stretched or shrunk in time to last ``duration`` [s]."""
@@ -73,14 +115,38 @@ class DriveScript:
             raise ValueError(msg)
         factor = duration / self.duration
         return DriveScript(tuple(Segment(s.name, s.twist, s.duration * factor)
-                                 for s in self.segments))
+                                 for s in self.segments), self.max_acceleration)
 
     def twists(self, times):
-        """Commanded twist at each time [s]; shape (k, 3). Zero after the end."""
+        """Commanded twist at each time [s] from the start; shape (k, 3). Zero after the end
+        (once the last ramp has ended)."""
         times = np.asarray(times, dtype=float)
-        ends = np.cumsum([s.duration for s in self.segments])
-        table = np.vstack([np.array([s.twist for s in self.segments]), np.zeros((1, 3))])
-        return table[np.searchsorted(ends, times, side='right')]
+        if self.max_acceleration is None:
+            ends = np.cumsum([s.duration for s in self.segments])
+            table = np.vstack([np.array([s.twist for s in self.segments]), np.zeros((1, 3))])
+            return table[np.searchsorted(ends, times, side='right')]
+        knots, values = self._ramp_knots()
+        flat = times.reshape(-1)
+        out = np.column_stack([np.interp(flat, knots, values[:, axis]) for axis in range(3)])
+        return out.reshape(times.shape + (3,))
+
+    def _ramp_knots(self):
+        """Corners (times [s] (m,), twists (m, 3)) of the piecewise-linear ramped command."""
+        knots, values = [0.0], [np.zeros(3)]
+        start, current = 0.0, np.zeros(3)
+        targets = [(np.array(s.twist), s.duration) for s in self.segments] + [(np.zeros(3), np.inf)]
+        for target, duration in targets:
+            ramp = self.max_acceleration.ramp_time(target - current)
+            if ramp > 0.0:
+                reached = min(ramp, duration)
+                current = current + (target - current) * (reached / ramp)
+                knots.append(start + reached)
+                values.append(current)
+            start += duration
+            if np.isfinite(start):
+                knots.append(start)
+                values.append(current)
+        return np.array(knots), np.array(values)
 
 
 def load_script(path=None, duration=None):
@@ -97,5 +163,5 @@ def load_script(path=None, duration=None):
     if not isinstance(data, dict):
         msg = f'{path}: a drive script is a mapping with segments'
         raise ConfigError(msg)
-    script = DriveScript.from_config(data.get('segments'), str(path))
+    script = DriveScript.from_config(data.get('segments'), str(path), data.get('max_acceleration'))
     return data.get('profile', DEFAULT_PROFILE), (script.scaled_to(duration) if duration else script)
