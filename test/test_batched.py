@@ -137,8 +137,9 @@ def test_chunks_equal_reading_message_by_message(tmp_path, model, typestore):
 @pytest.fixture(scope='module')
 def recordings(tmp_path_factory, model):
     """A stuck wheel (the PI loop saturates), friction, a runaway, a freeze, a silent module,
-    current mode, and faults raised early, latched, cleared and raised again on two wheels."""
-    _, script = load_script()
+    current mode, and faults raised early, latched, cleared and raised again on two wheels. The
+    demo drive's segments as steps: a step saturates the PI loop the observer predicts."""
+    script = load_script()[1].as_steps()
     root = tmp_path_factory.mktemp('batched')
     return {
         'stuck': record_drive(root / 'stuck', model, script, fault='stuck', wheel='wheel_joint_fr',

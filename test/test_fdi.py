@@ -18,7 +18,9 @@ from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.settings import load_settings
 
-_, SCRIPT = load_script()
+#: The demo drive's segments as steps (without its acceleration limit): a runaway becomes observable
+#: at the instant its command changes, so its detection delay is measured from there.
+SCRIPT = load_script()[1].as_steps()
 #: fault, wheel, injection time [s], time it becomes observable [s] (runaway: the next command change)
 CASES = [('torque_loss', 'wheel_joint_fr', 3.0, 3.0), ('friction', 'wheel_joint_bl', 5.0, 5.0),
          ('stuck', 'wheel_joint_br', 7.0, 7.0), ('runaway', 'wheel_joint_fl', 10.3, 10.5),
@@ -230,6 +232,24 @@ def test_runaway_becomes_visible_at_the_next_command_change(model):
     # 0.3 -> 0.31 m/s changes each wheel by 0.2 rad/s (not visible); the stop at 3 s is.
     assert _visible_time(model, script, 0, 1.0) == pytest.approx(3.0)
     assert math.isnan(_visible_time(model, script, 0, 3.5))
+
+
+@pytest.mark.parametrize('fault', ['runaway', 'torque_loss'])
+def test_a_wheel_that_lags_its_command_is_a_runaway_only_while_its_current_explains_its_motion(
+        tmp_path, model, fault):
+    """Forward, then faster forward: a runaway keeps the slower set-point, so it lags its new
+    command in the same direction as a weak wheel would; its torque residual stays within bounds
+    (it does what its current says), which names it runaway. A dead motor lags with its current
+    up (the torque residual out of bounds): torque_loss."""
+    from youbot_fdi.model.scenario import Segment
+    script = DriveScript((Segment('slow', (0.15, 0, 0), 2.0), Segment('fast', (0.3, 0, 0), 2.0)))
+    path = record_drive(tmp_path / fault, model, script, fault=fault, wheel='wheel_joint_bl',
+                        fault_time=1.0, torque_loss_gain=0.0).path
+    alarms = [e for e in replay(path) if e.level == 'ERROR']
+    assert alarms and {e.wheel for e in alarms} == {'wheel_joint_bl'}
+    assert settled(alarms) == fault
+    if fault == 'runaway':  # seen only once the command changes, and then at once
+        assert 0.0 <= alarms[0].stamp - (DEFAULT_START_STAMP + 2.0) <= MAX_DELAY
 
 
 def test_measurement_delay_delays_what_the_modules_report(model):

@@ -80,3 +80,10 @@ def test_the_demo_drive_is_smoothed_and_a_script_file_may_leave_the_limit_out(tm
     _, steps = load_script(path)
     assert steps.max_acceleration is None
     np.testing.assert_array_equal(steps.twists([0.0]), [[0.3, 0, 0]])
+
+
+def test_as_steps_drops_the_limit_and_keeps_the_segments():
+    script = DriveScript.from_config(RAW, max_acceleration=LIMIT)
+    steps = script.as_steps()
+    assert steps.segments == script.segments and steps.max_acceleration is None
+    np.testing.assert_array_equal(steps.twists([2.0]), [[0, 0, 0.8]])

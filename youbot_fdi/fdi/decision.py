@@ -160,7 +160,7 @@ class DecisionMaker:
         self.samples = 0
         # The recent rows (torque residual, torque, speed; stamps) for naming fault types; row r
         # of the arrays is row ``_recent_first + r`` of the stream, ``_row`` the one being judged.
-        self._recent = (np.empty(0), *(np.empty((0, self.n)),) * 3)
+        self._recent = (np.empty(0), *(np.empty((0, self.n)),) * 4)
         self._recent_first = 0
         self._row = -1
         self._isolation_cache = {}
@@ -519,12 +519,15 @@ class DecisionMaker:
             if not fired and not faulty - {int(w)}:
                 # A wheel that stands while commanded to turn is blocked, not running away.
                 # A wheel that lags behind its command path (slower, same direction) lacks torque
-                # or meets friction, named from the torque history; one that is faster or turns
-                # the other way runs away.
+                # or meets friction, named from the torque history, unless its torque residual
+                # stayed within bounds all along: then its current explains its motion, and its
+                # drive holds a set-point it was not given (a runaway held below the command).
+                # One that is faster or turns the other way runs away.
                 speed = frame.velocity[w]
                 predicted = speed - frame.values['command'][w]
                 lagging = (frame.command_mode == 'velocity' and abs(speed) < abs(predicted)
-                           and speed * predicted >= 0.0)
+                           and speed * predicted >= 0.0
+                           and not self._torque_within_bounds(w, self.components[self.wheel_names[w]]))
                 kind = None if lagging else FaultKind.RUNAWAY
                 diagnoses[int(w)] = (kind, (f'command_{self.suffixes[w]}',))
         return diagnoses
@@ -547,8 +550,8 @@ class DecisionMaker:
                              [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None],
                              self._breaking_away(frame.velocity[None], [frame.stamp]))
         self.samples += 1
-        self._remember(frame.values['torque'][None], frame.torque[None], frame.velocity[None],
-                       np.array([frame.stamp]))
+        self._remember(frame.values['torque'][None], z[TORQUE][None], frame.torque[None],
+                       frame.velocity[None], np.array([frame.stamp]))
         self._row = self._recent_first + len(self._recent[0]) - 1
         events = (self._load_events([frame.stamp], [frame.load_factor])
                   + self._range_events([frame.stamp], [frame.outside_calibration]))
@@ -581,7 +584,7 @@ class DecisionMaker:
                        + self._range_events(batch.stamp, batch.outside_calibration))
         changed = np.flatnonzero(np.concatenate([[True], (flags[1:] != flags[:-1]).any(axis=1)]))
         self.samples += rows
-        self._remember(batch.values['torque'], batch.torque, batch.velocity, batch.stamp)
+        self._remember(batch.values['torque'], z[:, TORQUE], batch.torque, batch.velocity, batch.stamp)
         first = self._recent_first + len(self._recent[0]) - rows
         final, events, k = self.alarm, [], 0
         while k < rows:
@@ -617,24 +620,38 @@ class DecisionMaker:
     def _all_ok(self):
         return all(c.level == OK for c in self.components.values())
 
-    def _remember(self, residual, torque, velocity, stamp):
-        """Append rows (torque residual, torque, speed (N, n); stamps (N,)) to the recent rows,
-        dropping those older than ``classification_window`` before the oldest new one."""
+    def _remember(self, residual, score, torque, velocity, stamp):
+        """Append rows (torque residual, its score |r|/u, torque, speed (N, n); stamps (N,)) to
+        the recent rows, dropping those older than ``classification_window`` before the oldest
+        new one."""
         old_stamp = self._recent[0]
         keep = int(np.searchsorted(old_stamp, stamp[0] - self.settings.classification_window))
         self._recent = tuple(np.concatenate([old[keep:], new]) for old, new in
-                             zip(self._recent, (stamp, residual, torque, velocity)))
+                             zip(self._recent, (stamp, residual, score, torque, velocity)))
         self._recent_first += keep
 
     def _history(self, wheel, component):
         """(torque residual, torque, speed) of ``wheel`` over the classification window up to the
         row being judged, since the component's episode began."""
-        stamps, residual, torque, velocity = self._recent
+        residual, _, torque, velocity = self._recent_rows(wheel, component)
+        return residual, torque, velocity
+
+    def _torque_within_bounds(self, wheel, component):
+        """True when ``wheel``'s torque residual has stayed within its bound (score below 1)
+        over the classification window up to the row being judged: its current explains its
+        motion."""
+        scores = self._recent_rows(wheel, component)[1]
+        return bool(len(scores)) and float(scores.max()) < 1.0
+
+    def _recent_rows(self, wheel, component):
+        """(torque residual, its score, torque, speed) of ``wheel`` over the classification
+        window up to the row being judged, since the component's episode began."""
+        stamps = self._recent[0]
         row = self._row - self._recent_first
         start = max(int(np.searchsorted(stamps[:row + 1],
                                         stamps[row] - self.settings.classification_window)),
                     component.cleared + 1 - self._recent_first)
-        return residual[start:row + 1, wheel], torque[start:row + 1, wheel], velocity[start:row + 1, wheel]
+        return tuple(values[start:row + 1, wheel] for values in self._recent[1:])
 
     def _step(self, frame, z):
         """Diagnose one frame with its scores ``z`` (families, n) and the alarms in ``self.alarm``."""

@@ -117,6 +117,10 @@ class DriveScript:
         return DriveScript(tuple(Segment(s.name, s.twist, s.duration * factor)
                                  for s in self.segments), self.max_acceleration)
 
+    def as_steps(self):
+        """The same segments without the acceleration limit: each twist commanded at once."""
+        return DriveScript(self.segments)
+
     def twists(self, times):
         """Commanded twist at each time [s] from the start; shape (k, 3). Zero after the end
         (once the last ramp has ended)."""
