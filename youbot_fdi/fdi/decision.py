@@ -55,6 +55,7 @@ SHARED_FAMILIES = [TORQUE, COMMAND]
 SHARED_SHARE = 0.5
 NEVER = -1e300  # [s] the stamp of a rise that has not happened (finite: differences stay defined)
 LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
+AT_BOUND = 1.0  # the score |r| / u of a residual at its bound [-]
 MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name comm_loss, not a freeze
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
 EXCITED_TORQUE_SIGMAS = 3.0
@@ -158,8 +159,9 @@ class DecisionMaker:
         self.components = {w: _Component() for w in self.wheel_names}
         self.components[BASE] = _Component()
         self.samples = 0
-        # The recent rows (torque residual, torque, speed; stamps) for naming fault types; row r
-        # of the arrays is row ``_recent_first + r`` of the stream, ``_row`` the one being judged.
+        # The recent rows (stamps; torque residual, its score, torque, speed) for naming fault
+        # types; row r of the arrays is row ``_recent_first + r`` of the stream, ``_row`` the one
+        # being judged.
         self._recent = (np.empty(0), *(np.empty((0, self.n)),) * 4)
         self._recent_first = 0
         self._row = -1
@@ -460,7 +462,7 @@ class DecisionMaker:
         if abs(speed) < self.settings.stuck_speed and (abs(commanded) > self.settings.stuck_speed
                                                        or abs(torque) > self.settings.torque_sigma * 10):
             return FaultKind.STUCK
-        residual, measured, speeds = self._history(wheel, component)
+        residual, _, measured, speeds = self._recent_rows(wheel, component)
         if len(residual) < 2:
             return FaultKind.UNKNOWN
         errors = []
@@ -630,18 +632,12 @@ class DecisionMaker:
                              zip(self._recent, (stamp, residual, score, torque, velocity)))
         self._recent_first += keep
 
-    def _history(self, wheel, component):
-        """(torque residual, torque, speed) of ``wheel`` over the classification window up to the
-        row being judged, since the component's episode began."""
-        residual, _, torque, velocity = self._recent_rows(wheel, component)
-        return residual, torque, velocity
-
     def _torque_within_bounds(self, wheel, component):
         """True when ``wheel``'s torque residual has stayed within its bound (score below 1)
         over the classification window up to the row being judged: its current explains its
         motion."""
         scores = self._recent_rows(wheel, component)[1]
-        return bool(len(scores)) and float(scores.max()) < 1.0
+        return bool(len(scores)) and float(scores.max()) < AT_BOUND
 
     def _recent_rows(self, wheel, component):
         """(torque residual, its score, torque, speed) of ``wheel`` over the classification
