@@ -285,3 +285,30 @@ def test_fault_injection_is_validated(rig):
     rig.base.clear_faults()
     assert rig.base.faults == {}
 
+
+
+def test_lockstep_waits_for_each_frame_to_be_handled_not_only_received():
+    """A handler slower than the receive thread's count (the frame counted as received, its
+    set-point not yet applied, its reply not yet sent) changes nothing: the lockstep rig steps
+    only once every frame's handler has returned, so a slow module gives the same drive."""
+    import time
+    samples = []
+    for delay in (0.0, 0.003):
+        rig = make_rig()
+        handle = rig.base.transport.handler
+
+        def slow(*frame, handle=handle, delay=delay):
+            time.sleep(delay)
+            return handle(*frame)
+
+        rig.base.transport.handler = slow
+        try:
+            command = forward_command(rig.model)
+            steps = [rig.step('velocity', command) for _ in range(15)]
+            assert None not in steps, 'a step returned before the module had replied'
+            samples.append([sample.velocity for sample in steps])
+            counters, _ = rig.base.transport.snapshot()
+            assert counters['handled'] == counters['received'] > 0
+        finally:
+            rig.close()
+    np.testing.assert_array_equal(samples[1], samples[0])

@@ -40,13 +40,15 @@ class LockstepBase:
                                  clock=lambda: self.base.time, owns_bus=True)
 
     def settle(self):
-        """Wait until every frame sent either way has been handled."""
+        """Wait until every frame sent either way has been handled: its handler has returned
+        (a frame counted as received may still be in its handler, in the bus's receive thread,
+        and its reply not yet sent)."""
         deadline = time.monotonic() + SETTLE_TIMEOUT
         while time.monotonic() < deadline:
             base, _ = self.base.transport.snapshot()
             drv, _ = self.driver.transport.snapshot()
-            if (base.get('received', 0) + base.get('ignored', 0) >= drv.get('sent', 0)
-                    and drv.get('received', 0) >= base.get('sent', 0)):
+            if (base.get('handled', 0) + base.get('ignored', 0) >= drv.get('sent', 0)
+                    and drv.get('handled', 0) >= base.get('sent', 0)):
                 return
             time.sleep(0)
         raise TimeoutError('frames did not cross the virtual bus in time')

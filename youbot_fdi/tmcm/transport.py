@@ -42,7 +42,8 @@ class CanTransport:
     Attributes
     ----------
     counters : collections.Counter
-        ``sent``, ``received``, ``send_errors``, ``error_frames``, ``malformed`` (a
+        ``sent``, ``received``, ``handled`` (received frames the handler has finished with,
+        whatever the outcome), ``send_errors``, ``error_frames``, ``malformed`` (a
         :class:`TmclDecodeError` from the handler), ``ignored`` (extended/remote frames),
         ``handler_errors``.
     """
@@ -78,6 +79,8 @@ class CanTransport:
         except Exception as err:  # noqa: BLE001 - the receive thread must survive anything
             LOG.exception('CAN frame handler failed')
             self._count('handler_errors', f'handler failed on id 0x{message.arbitration_id:03X}: {err}')
+        finally:
+            self._count('handled')
 
     def send(self, arbitration_id, data):
         """Send one standard frame; returns False (and counts) instead of raising on bus errors."""
