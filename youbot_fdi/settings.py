@@ -33,6 +33,14 @@ def node_parameters(data, node_name, source='<parameters>'):
     return merged
 
 
+def finite_number(value, where):
+    """``value`` as a float, or ConfigError naming ``where`` unless it is a finite int or float
+    (a bool is not a number here)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f'{where} must be a finite number, got {value!r}')
+    return float(value)
+
+
 def _coerce(field, value, source):
     default = field.default
     where = f'{source}: parameter {field.name}'
@@ -45,9 +53,7 @@ def _coerce(field, value, source):
             raise ConfigError(f'{where} must be an integer, got {value!r}')
         return value
     if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ConfigError(f'{where} must be a finite number, got {value!r}')
-        return float(value)
+        return finite_number(value, where)
     if isinstance(default, str):
         if not isinstance(value, str):
             raise ConfigError(f'{where} must be a string, got {value!r}')

@@ -9,6 +9,7 @@ import yaml
 
 from youbot_fdi.config_paths import config_dir
 from youbot_fdi.errors import ConfigError
+from youbot_fdi.settings import finite_number
 from youbot_fdi.yamlio import load_yaml
 
 DEFAULT_SCRIPT = 'demo.yaml'
@@ -47,14 +48,12 @@ class AccelerationLimit:
         if not isinstance(raw, dict) or set(raw) != {'linear', 'angular'}:
             msg = f'{source}: max_acceleration must be a mapping with linear and angular, got {raw!r}'
             raise ConfigError(msg)
-        values = {}
-        for key in ('linear', 'angular'):
-            value = raw[key]
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not np.isfinite(value) or value <= 0.0:
-                msg = f'{source}: max_acceleration.{key} must be a finite number > 0, got {value!r}'
+        values = {key: finite_number(raw[key], f'{source}: max_acceleration.{key}')
+                  for key in ('linear', 'angular')}
+        for key, value in values.items():
+            if value <= 0.0:
+                msg = f'{source}: max_acceleration.{key} must be > 0, got {value:g}'
                 raise ConfigError(msg)
-            values[key] = float(value)
         return cls(**values)
 
 
@@ -92,14 +91,8 @@ class DriveScript:
             if unknown:
                 msg = f'{where}: unknown keys {sorted(unknown)}'
                 raise ConfigError(msg)
-            values = {}
-            for key in ('duration', *TWIST_KEYS):
-                value = raw.get(key, 0.0)
-                if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                        or not np.isfinite(value):
-                    msg = f'{where}.{key} must be a finite number, got {value!r}'
-                    raise ConfigError(msg)
-                values[key] = float(value)
+            values = {key: finite_number(raw.get(key, 0.0), f'{where}.{key}')
+                      for key in ('duration', *TWIST_KEYS)}
             if values['duration'] <= 0.0:
                 msg = f'{where}.duration must be > 0 s, got {values["duration"]:g}'
                 raise ConfigError(msg)
