@@ -166,7 +166,7 @@ def sample_by_sample(path, model, settings):
     generator = ResidualGenerator(model, settings)
     decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
     frames, events = [], []
-    with RecordingReader(path, model.wheel_names) as reader:
+    with RecordingReader(path, model.wheel_names, keep_partial=True) as reader:
         for sample in reader.samples():
             if hasattr(sample, 'kind'):
                 generator.command(sample)
@@ -187,7 +187,7 @@ def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_d
     stepped = []
     original = pipeline.generator.observer._stepped
     pipeline.generator.observer._stepped = lambda *args: stepped.append(1) or original(*args)
-    with RecordingReader(recordings[name], model.wheel_names) as reader:
+    with RecordingReader(recordings[name], model.wheel_names, keep_partial=True) as reader:
         events = [e for chunk in reader.chunks(size=SMALL_CHUNK) for e in pipeline.feed(chunk)]
     frames, expected = sample_by_sample(recordings[name], model, pipeline.settings)
     assert [e.to_dict() for e in events] == [e.to_dict() for e in expected]

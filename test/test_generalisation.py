@@ -131,7 +131,7 @@ def _frame(model, stamp, torque_score, position_frozen=0, speed=2.0):
                          velocity=np.full(n, speed), torque=np.full(n, 0.5), command_mode='velocity',
                          command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
                          effort_frozen=np.zeros(n, dtype=int),
-                         position_frozen=np.array([position_frozen, 0, 0, 0]))
+                         position_frozen=np.array([position_frozen, 0, 0, 0]), silent=np.zeros(n))
 
 
 def _first_alarm(model, scores):

@@ -63,6 +63,15 @@ class JointBatch:
         """The rows picked by ``rows`` (a boolean mask or indices) as a batch."""
         return JointBatch(self.stamp[rows], self.position[rows], self.velocity[rows], self.effort[rows])
 
+    def answered(self):
+        """(N, n) bool: the wheels with a reading (position and speed) in each row; a driver
+        gives NaN for a module that did not answer its cycle."""
+        return np.isfinite(self.position) & np.isfinite(self.velocity)
+
+    def complete(self):
+        """(N,) bool: the rows with every wheel's reading."""
+        return self.answered().all(axis=1)
+
 
 def _same(now, before):
     """Row-wise: every value of ``now`` (N, n) equals ``before`` (N, n), NaN matching NaN."""
@@ -146,13 +155,14 @@ class SampleChunk:
 
 
 COUNTERS = ('joint_states', 'wheel_commands', 'skipped_nan', 'skipped_short',
-            'skipped_missing_joint', 'skipped_no_values')
+            'skipped_missing_joint', 'skipped_no_values', 'partial_samples')
 
 
 #: What each counted input problem means, for people (the mapper's skips and the residual
 #: generator's restarts, :data:`youbot_fdi.fdi.observer.STAMP_COUNTERS`).
 INPUT_PROBLEMS = {
     'skipped_nan': 'NaN or infinite values',
+    'partial_samples': "some wheels' readings missing (NaN: their module did not answer the cycle)",
     'skipped_short': 'arrays shorter than the joint names',
     'skipped_missing_joint': 'a wheel joint missing (unknown or absent names)',
     'skipped_no_values': 'no values (empty or undecodable message)',
@@ -205,10 +215,17 @@ class SampleMapper:
     The ``*_rows`` methods take a block of messages that share ``names`` and array lengths: a stamp
     array (N,) and fields of shape (N, m) (m = 0: the field is absent). They return the usable rows
     as a batch and their indices into the block, and count the rest.
+
+    ``keep_partial``: keep the /joint_states rows in which some wheels' readings are NaN (a driver
+    marks a module that did not answer its cycle so) as long as one wheel has a reading; those
+    wheels' position, speed and effort are all NaN (counted as ``partial_samples``). The FDI keeps
+    them: a wheel that stays silent is that wheel's ``comm_loss``. Otherwise (odometry) such rows
+    are skipped like any row with NaN.
     """
 
-    def __init__(self, wheel_names):
+    def __init__(self, wheel_names, keep_partial=False):
         self.wheel_names = tuple(wheel_names)
+        self.keep_partial = keep_partial
         self.counters = dict.fromkeys(COUNTERS, 0)
         self._index_cache = {}
 
@@ -261,7 +278,17 @@ class SampleMapper:
             return None
         if effort is None:
             effort = np.full(position.shape, math.nan)
-        kept = self._keep_finite((position, velocity), rows)
+        if self.keep_partial:
+            answered = np.isfinite(position) & np.isfinite(velocity)
+            partial = ~answered.all(axis=1) & answered.any(axis=1)
+            if partial.any():  # a silent wheel is silent in every reading
+                position, velocity, effort = (np.where(answered, a, math.nan)
+                                              for a in (position, velocity, effort))
+                self.counters['partial_samples'] += int(np.count_nonzero(partial))
+            kept = np.flatnonzero(answered.any(axis=1))
+            self.counters['skipped_nan'] += rows - len(kept)
+        else:
+            kept = self._keep_finite((position, velocity), rows)
         if not len(kept):
             return None
         self.counters['joint_states'] += len(kept)

@@ -57,6 +57,10 @@ class RecordingReader:
         Joint names in model order.
     joint_topic, command_topic : str
         Topic names (CONTRACT.md defaults).
+    keep_partial : bool
+        Keep /joint_states rows in which only some wheels have readings (the FDI's replay: a
+        silent wheel is its comm_loss); otherwise they are skipped as NaN
+        (:class:`~youbot_fdi.samples.SampleMapper`).
 
     Attributes
     ----------
@@ -65,7 +69,8 @@ class RecordingReader:
         ``skipped_missing_joint``, ``skipped_no_values``.
     """
 
-    def __init__(self, path, wheel_names, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMANDS):
+    def __init__(self, path, wheel_names, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMANDS,
+                 keep_partial=False):
         from rosbags.rosbag2 import Reader
         from rosbags.typesys import get_typestore, Stores
 
@@ -73,7 +78,7 @@ class RecordingReader:
         self.wheel_names = tuple(wheel_names)
         self.joint_topic, self.command_topic = joint_topic, command_topic
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
-        self.mapper = SampleMapper(wheel_names)
+        self.mapper = SampleMapper(wheel_names, keep_partial=keep_partial)
         self.counters = self.mapper.counters
         #: :class:`~youbot_fdi.bag.salvage.Damage` when rosbags could not read the recording whole
         #: (cut short, no metadata.yaml), or it broke part-way; None otherwise

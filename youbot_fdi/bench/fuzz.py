@@ -70,8 +70,13 @@ class FuzzTargets:
         base = tuple((m.mode, m.target, tuple(sorted(m.parameters.items())), m.sticky_flags,
                       m.encoder_offset, m.process_data_control) for m in self.base.modules)
         driver = self.driver
-        return (base, driver._position.tobytes(), driver._velocity.tobytes(),
-                driver._effort.tobytes(), driver._flags.tobytes(), tuple(sorted(driver._replies)))
+        cycles = tuple((cycle, *(a.tobytes() for a in (slot.position, slot.velocity, slot.effort,
+                                                      slot.flags)))
+                       for cycle, slot in sorted(driver._open.items()))
+        latest = driver.sample()
+        readings = None if latest is None else tuple(
+            a.tobytes() for a in (latest.position, latest.velocity, latest.effort))
+        return (base, cycles, readings, driver._flags.tobytes(), tuple(sorted(driver._replies)))
 
     def close(self):
         self.base.close()

@@ -411,14 +411,21 @@ class DecisionMaker:
             self._outside_stamp = float(last_out[-1])
         return events
 
-    def _can_diagnose(self, alarm, position_frozen):
+    def _can_diagnose(self, alarm, position_frozen, silent):
         """Rows of ``alarm`` (N, families, n) that give a diagnosis when every component is OK:
         a torque or encoder alarm, a position frozen while moving (``position_frozen`` (N, n)
-        counts), or fewer than half the wheels off their command path."""
+        counts), a wheel silent for ``data_timeout`` (``silent`` (N, n) [s]), or fewer than half
+        the wheels off their command path."""
         commands = np.count_nonzero(alarm[:, COMMAND], axis=1)
         return (alarm[:, TORQUE].any(axis=1) | alarm[:, ENCODER].any(axis=1)
                 | (position_frozen >= self.settings.frozen_samples).any(axis=1)
+                | self._silent(silent).any(axis=1)
                 | ((commands > 0) & (commands * 2 < self.n)))
+
+    def _silent(self, silent):
+        """Wheels (..., n) without a reading for ``data_timeout``, from their silent times [s]: no
+        fresh data from their module (the driver's NaN), as the base's comm_loss is for all."""
+        return silent >= self.settings.data_timeout
 
     def _family(self, name):
         return self.alarm[FAMILIES.index(name)]
@@ -463,6 +470,8 @@ class DecisionMaker:
                                                        or abs(torque) > self.settings.torque_sigma * 10):
             return FaultKind.STUCK
         residual, _, measured, speeds = self._recent_rows(wheel, component)
+        known = np.isfinite(residual) & np.isfinite(measured) & np.isfinite(speeds)
+        residual, measured, speeds = residual[known], measured[known], speeds[known]
         if len(residual) < 2:
             return FaultKind.UNKNOWN
         errors = []
@@ -491,10 +500,15 @@ class DecisionMaker:
         still_frozen = {w for w in self._active(sensor_faults)
                         if frame.frozen[w] >= self.settings.frozen_samples}
         stopped = set(np.flatnonzero(frame.position_frozen >= self.settings.frozen_samples).tolist())
+        # A wheel without any reading for data_timeout (its module silent: the driver's NaN)
+        # lost its communication, whatever else is known of it.
+        for w in np.flatnonzero(self._silent(frame.silent)):
+            diagnoses[int(w)] = (FaultKind.COMM_LOSS, (f'silent_{self.suffixes[w]}',))
         # A freeze shows as a position that stops following the speed (encoder_<w>), or repeats
         # exactly while the wheel is commanded and measured to turn; frozen readings alone prove
         # nothing: a standing wheel reads the same every sample.
-        for w in sorted(set(np.flatnonzero(self._family('encoder'))) | still_frozen | stopped):
+        for w in sorted((set(np.flatnonzero(self._family('encoder'))) | still_frozen | stopped)
+                        - set(diagnoses)):
             # Every reading of the module stale together (effort too, as long as the rest): no
             # fresh data from it. Evidence may name the fault before frozen_samples are counted.
             stale = frame.effort_frozen[w]
@@ -557,7 +571,8 @@ class DecisionMaker:
         self._row = self._recent_first + len(self._recent[0]) - 1
         events = (self._load_events([frame.stamp], [frame.load_factor])
                   + self._range_events([frame.stamp], [frame.outside_calibration]))
-        if self._all_ok() and not self._can_diagnose(alarm, frame.position_frozen[None])[0]:
+        if self._all_ok() and not self._can_diagnose(alarm, frame.position_frozen[None],
+                                                     frame.silent[None])[0]:
             return events
         return events + self._step(frame, z)
 
@@ -577,11 +592,11 @@ class DecisionMaker:
         alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp,
                              batch.values['torque'], batch.bounds['torque'],
                              self._breaking_away(batch.velocity, batch.stamp))
-        capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen))
+        capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen, batch.silent))
         frozen = self.settings.frozen_samples
         flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
-                                batch.effort_frozen >= frozen, batch.position_frozen >= frozen],
-                               axis=1)
+                                batch.effort_frozen >= frozen, batch.position_frozen >= frozen,
+                                self._silent(batch.silent)], axis=1)
         load_events = (self._load_events(batch.stamp, batch.load_factor)
                        + self._range_events(batch.stamp, batch.outside_calibration))
         changed = np.flatnonzero(np.concatenate([[True], (flags[1:] != flags[:-1]).any(axis=1)]))

@@ -174,7 +174,7 @@ class FdiPipeline:
         from youbot_fdi.bag.reader import RecordingReader
         events = []
         with RecordingReader(path, self.model.wheel_names, joint_topic or JOINT_STATES,
-                             command_topic or WHEEL_COMMANDS) as reader:
+                             command_topic or WHEEL_COMMANDS, keep_partial=True) as reader:
             for chunk in reader.chunks(on_progress=on_progress):
                 for event in self.feed(chunk):
                     events.append(event)

@@ -68,12 +68,15 @@ def run_lengths(flags, carry, restart=None):
 
 
 def last_true_value(flags, values, initial):
-    """For each row, ``values`` at the latest row at or before it where ``flags`` (N,) holds, else
-    ``initial``."""
+    """For each row, ``values`` (N,) at the latest row at or before it where ``flags`` (N,) or
+    (N, n) holds (column by column), else ``initial`` (scalar, or (n,))."""
+    flags = np.asarray(flags, dtype=bool)
+    values = np.asarray(values)
     if len(flags) == 1:
-        return np.where(flags, values, initial)
-    index = np.maximum.accumulate(np.where(flags, np.arange(len(flags)), -1))
-    return np.where(index >= 0, np.asarray(values)[np.maximum(index, 0)], initial)
+        return np.where(flags, values.reshape((1,) + (1,) * (flags.ndim - 1)), initial)
+    rows = np.arange(len(flags)).reshape((-1,) + (1,) * (flags.ndim - 1))
+    index = np.maximum.accumulate(np.where(flags, rows, -1), axis=0)
+    return np.where(index >= 0, values[np.maximum(index, 0)], initial)
 
 
 def cusum(steps, g0):

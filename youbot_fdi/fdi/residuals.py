@@ -40,14 +40,14 @@ import numpy as np
 
 from youbot_fdi.fdi.observer import ModelObserver, signed_torque
 from youbot_fdi.fdi.recursions import last_true_value, run_lengths
-from youbot_fdi.samples import VELOCITY
+from youbot_fdi.samples import JointBatch, VELOCITY
 from youbot_fdi.structure.generate import wheel_suffix
 
 FAMILIES = ('torque', 'observer', 'command', 'encoder')
 #: Signals a frame carries besides its residuals: (label prefix, attribute).
 SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
            ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'),
-           ('position_frozen', 'position_frozen'))
+           ('position_frozen', 'position_frozen'), ('silent', 'silent'))
 #: Each bound is linear in its operating-point features: u = sum_j settings[name_j] * feature_j.
 #: Per bound, the settings that weigh its features, in feature order (``identify`` fits them by
 #: quantile regression on a nominal recording). ``effort`` is the command family in current mode.
@@ -102,6 +102,8 @@ class ResidualFrame:
     frozen: np.ndarray  # consecutive samples with position and speed unchanged (n,) int
     effort_frozen: np.ndarray  # consecutive samples with the effort unchanged too (n,) int
     position_frozen: np.ndarray  # consecutive samples with the position unchanged while moving (n,)
+    #: time since each wheel's last reading (0: it has one now; a driver's NaN: it had none) [s]
+    silent: np.ndarray
     load_factor: float = 1.0  # the platform-wide friction/load condition (1: as identified) [-]
     #: wheels outside the learned correction's calibrated range (bit mask, see Prediction)
     outside_calibration: float = 0.0
@@ -168,6 +170,7 @@ class ResidualFrame:
                    command=signals['command'],
                    frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int),
                    position_frozen=signals['position_frozen'].astype(int),
+                   silent=signals['silent'],
                    load_factor=float(values[index['load_factor']]),
                    outside_calibration=float(values[index['outside_calibration']]))
 
@@ -177,7 +180,7 @@ class ResidualFrame:
 SCALAR_SIGNALS = ('command_mode', 'load_factor', 'outside_calibration')
 #: The per-row arrays of a ResidualBatch besides ``values`` and ``bounds``.
 ROW_ARRAYS = ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen', 'effort_frozen',
-              'position_frozen', 'load_factor', 'command_speed', 'outside_calibration')
+              'position_frozen', 'silent', 'load_factor', 'command_speed', 'outside_calibration')
 
 
 @dataclass(frozen=True)
@@ -198,6 +201,7 @@ class ResidualBatch:
     frozen: np.ndarray
     effort_frozen: np.ndarray
     position_frozen: np.ndarray
+    silent: np.ndarray
     load_factor: np.ndarray
     command_speed: np.ndarray
     outside_calibration: np.ndarray  # (N,) wheels outside the learned range (bit mask)
@@ -213,7 +217,8 @@ class ResidualBatch:
             bounds={f: b[k] for f, b in self.bounds.items()}, velocity=self.velocity[k],
             torque=self.torque[k], command_mode=VELOCITY if self.velocity_mode[k] else 'effort',
             command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k],
-            position_frozen=self.position_frozen[k], load_factor=float(self.load_factor[k]),
+            position_frozen=self.position_frozen[k], silent=self.silent[k],
+            load_factor=float(self.load_factor[k]),
             outside_calibration=float(self.outside_calibration[k]))
 
     def select(self, rows):
@@ -233,9 +238,13 @@ class ResidualBatch:
         """One batch of several, in order."""
         batches = list(batches)
         join = {f: np.concatenate([getattr(b, f) for b in batches]) for f in ROW_ARRAYS}
+        features = None
+        if all(b.features for b in batches):
+            features = {f: np.concatenate([b.features[f] for b in batches])
+                        for f in batches[0].features}
         return cls(values={f: np.concatenate([b.values[f] for b in batches]) for f in FAMILIES},
                    bounds={f: np.concatenate([b.bounds[f] for b in batches]) for f in FAMILIES},
-                   **join)
+                   features=features, **join)
 
 
 class ResidualEvaluator:
@@ -268,6 +277,10 @@ class ResidualEvaluator:
         self.loop_compliance = 1.0 / stiffness if stiffness > 0.0 else 0.0
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
+        self._fresh = None  # (n,) stamp of each wheel's last reading [s]
+        self._frozen = np.zeros(self.n, dtype=int)
+        self._effort_frozen = np.zeros(self.n, dtype=int)
+        self._position_frozen = np.zeros(self.n, dtype=int)
         self.counters = {'unpaired': 0}
 
     @property
@@ -287,6 +300,43 @@ class ResidualEvaluator:
         self._last = (sample.stamp, position, velocity,
                       signed_torque(torque, velocity, self.signed_effort))
         self._started = sample.stamp
+        self._fresh = np.full(self.n, sample.stamp)
+
+    # ------------------------------------------------------------------ missing readings
+    def silence(self, stamps, answered):
+        """Time [s] (N, n) since each wheel's last reading at each of ``stamps`` (N,), from which
+        wheels ``answered`` (N, n) bool in each row; continues (and leaves) the state."""
+        stamps = np.asarray(stamps, dtype=float)
+        if self._fresh is None:  # silence counts from the first sample seen
+            self._fresh = np.full(self.n, stamps[0])
+        fresh = last_true_value(answered, stamps, self._fresh)
+        self._fresh = fresh[-1]
+        return stamps[:, None] - fresh
+
+    def missing_batch(self, joints):
+        """Frames for rows of ``joints`` (:class:`~youbot_fdi.samples.JointBatch`) in which some
+        wheels have no reading (NaN from the driver: their module did not answer the cycle):
+        missing data. Nothing is computed from them (every residual NaN, scored 0: no evidence),
+        the observer and the interval's start are left as they were, and the frames carry each
+        wheel's ``silent`` time, from which the decision names a wheel that stays silent
+        ``comm_loss``. A :class:`ResidualBatch` (features NaN)."""
+        rows, n = len(joints), self.n
+        silent = self.silence(joints.stamp, joints.answered())
+        nan = np.full((rows, n), np.nan)
+        counters = (np.broadcast_to(c, (rows, n)).copy() for c in
+                    (self._frozen, self._effort_frozen, self._position_frozen))
+        features = {family: np.full((rows, n, len(BOUND_TERMS[family])), np.nan)
+                    for family in BOUND_TERMS}
+        return _batch(joints.stamp, nan, np.ones((rows, n)), nan, np.ones((rows, n)), nan,
+                      np.ones((rows, n)), nan, np.ones((rows, n)), self.signs * joints.velocity,
+                      nan, np.ones(rows, dtype=bool), nan, *counters, silent,
+                      np.full(rows, np.nan), nan, np.zeros(rows), features)
+
+    def missing(self, sample):
+        """:meth:`missing_batch` for one sample (:class:`~youbot_fdi.samples.JointSample`): a
+        :class:`ResidualFrame`."""
+        return self.missing_batch(JointBatch(np.array([sample.stamp]), sample.position[None],
+                                             sample.velocity[None], sample.effort[None])).frame(0)
 
     # ------------------------------------------------------------------ the residual formulas
     # Shapes (n,) for one sample or (N, n) for a block; ``step`` is dt [s] (a scalar, or (N, 1)).
@@ -377,6 +427,7 @@ class ResidualEvaluator:
         stopped = (position == last_position) & self._moving(mean_speed, p.commanded, p.velocity_mode, dt)
         self._position_frozen = np.where(stopped, self._position_frozen + 1, 0)
         self._last = (stamp, position, velocity, torque)
+        self._fresh = np.full(self.n, stamp)
         return ResidualFrame(
             stamp=stamp,
             values={'torque': torque_r, 'observer': velocity - p.from_currents, 'command': command_r,
@@ -386,7 +437,7 @@ class ResidualEvaluator:
                     'command': command_u, 'encoder': self.bound('encoder', encoder_f)},
             velocity=velocity, torque=torque, command_mode=VELOCITY if p.velocity_mode else 'effort',
             command=p.commanded, frozen=self._frozen, effort_frozen=self._effort_frozen,
-            position_frozen=self._position_frozen, load_factor=p.load_factor,
+            position_frozen=self._position_frozen, silent=np.zeros(self.n), load_factor=p.load_factor,
             outside_calibration=p.outside_calibration)
 
     def update_batch(self, joints, predictions):
@@ -399,7 +450,7 @@ class ResidualEvaluator:
         if rows == 0:
             empty = np.empty((0, n))
             return _batch(joints.stamp, *(empty,) * 10, p.velocity_mode, empty,
-                          *(empty.astype(int),) * 3, np.empty(0), empty, np.empty(0), {})
+                          *(empty.astype(int),) * 3, empty, np.empty(0), empty, np.empty(0), {})
         stamp = joints.stamp
         position, velocity, torque = (self.signs * a for a in
                                       (joints.position, joints.velocity, joints.effort))
@@ -439,13 +490,15 @@ class ResidualEvaluator:
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
         self._frozen, self._effort_frozen, self._started = frozen[-1], effort_frozen[-1], started[-1]
         self._position_frozen = position_frozen[-1]
+        self._fresh = np.full(n, stamp[-1])
         features = {'torque': torque_f, 'observer': observer_f, 'command': velocity_f,
                     'effort': effort_f, 'encoder': encoder_f}
         batch = _batch(stamp, torque_r, self.bound('torque', torque_f) + torque_a,
                        velocity - p.from_currents, self.bound('observer', observer_f), command_r,
                        command_u, encoder_r, self.bound('encoder', encoder_f), velocity, torque,
                        p.velocity_mode, p.commanded, frozen, effort_frozen, position_frozen,
-                       p.load_factor, p.from_commands, p.outside_calibration, features)
+                       np.zeros((rows, n)), p.load_factor, p.from_commands, p.outside_calibration,
+                       features)
         return batch.select(~restart) if restart.any() else batch
 
 
@@ -480,11 +533,11 @@ class ResidualSpread:
 
 def _batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u, encoder_r,
            encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen,
-           position_frozen, load_factor, command_speed, outside_calibration, features):
+           position_frozen, silent, load_factor, command_speed, outside_calibration, features):
     values = dict(zip(FAMILIES, (torque_r, observer_r, command_r, encoder_r)))
     bounds = dict(zip(FAMILIES, (torque_u, observer_u, command_u, encoder_u)))
     return ResidualBatch(stamp, values, bounds, velocity, torque, velocity_mode, target, frozen,
-                         effort_frozen, position_frozen, load_factor, command_speed,
+                         effort_frozen, position_frozen, silent, load_factor, command_speed,
                          outside_calibration, features)
 
 
@@ -524,6 +577,9 @@ class ResidualGenerator:
         """Residuals for one /joint_states sample (:class:`~youbot_fdi.samples.JointSample`):
         a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder). Also
         :attr:`last_prediction`, the observer's :class:`~youbot_fdi.fdi.observer.Prediction`."""
+        if not np.isfinite(sample.position).all() or not np.isfinite(sample.velocity).all():
+            self.last_prediction = None
+            return self.evaluator.missing(sample)  # some wheels without a reading
         self.last_prediction = prediction = self.observer.update(sample)
         if prediction is None:
             self.evaluator.restart(sample)
@@ -537,6 +593,25 @@ class ResidualGenerator:
 
         Returns a :class:`ResidualBatch` of every sample but those that (re)start the generator:
         the first, and any after a gap longer than ``data_timeout`` or a stamp going backwards.
+        Rows in which some wheels have no reading are missing data
+        (:meth:`ResidualEvaluator.missing_batch`): the model spans them, as a longer interval.
         """
-        return self.evaluator.update_batch(joints, self.observer.update_batch(joints, commands,
-                                                                              commands_before))
+        complete = joints.complete()
+        if complete.all():
+            return self.evaluator.update_batch(joints, self.observer.update_batch(
+                joints, commands, commands_before))
+        parts, commands_taken = [], False
+        changes = np.flatnonzero(complete[1:] != complete[:-1]) + 1
+        for start, stop in zip([0, *changes], [*changes, len(joints)]):
+            rows = joints.rows(start, stop)
+            if not complete[start]:
+                parts.append(self.evaluator.missing_batch(rows))
+                continue
+            # Every command of the block goes with the first complete rows: which one is in
+            # force at a sample is decided by the stamps (the clock rule), not by this split.
+            predictions = self.observer.update_batch(rows, None if commands_taken else commands)
+            commands_taken = True
+            parts.append(self.evaluator.update_batch(rows, predictions))
+        if not commands_taken and commands is not None:  # kept for the samples to come
+            self.observer.update_batch(JointBatch.empty(self.evaluator.n), commands)
+        return ResidualBatch.concatenate(parts)

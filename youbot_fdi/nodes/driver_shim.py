@@ -4,12 +4,17 @@
 
 Topics (CONTRACT.md, driver convention): subscribes ``/wheel_commands`` (JointState: ``velocity``
 [rad/s] or ``effort`` [N·m], matched by joint name); publishes ``/joint_states`` (position [rad],
-velocity [rad/s], effort [N·m] from the measured current, stamped with the sample time) every
-cycle with fresh data, and ``/diagnostics`` (one status per wheel module and one for the bus).
+velocity [rad/s], effort [N·m] from the measured current) once per process-data cycle, every
+wheel's readings from that cycle, stamped with the cycle's time (NaN for a module that did not
+answer within the cycle: missing data, never its previous value), and ``/diagnostics`` (one status
+per wheel module and one for the bus, with the cycle's period and lateness, p50/p99/max).
 Services ``~/switch_on_motors`` and ``~/switch_off_motors`` (std_srvs/Trigger), and per wheel
 ``~/switch_off_motor_<w>`` (``<w>`` the wheel suffix, e.g. ``fl``): that wheel's motor off (TMCL
 MST, then 0 mA) until ``~/switch_on_motors``; a fault reaction of the kinematics bridge.
 A command older than ``command_timeout`` is replaced by zero speed (watchdog).
+
+``realtime_priority`` and ``cpu_cores`` give the shim's cycle and CAN threads SCHED_FIFO priority
+and a CPU affinity where the OS permits (docs/tmcm.md, "Cycle timing"); off by default.
 """
 import sys
 
@@ -25,6 +30,7 @@ from youbot_fdi.nodes.common import (declare_settings, health_to_diagnostics,
                                      STREAM_QOS)
 from youbot_fdi.tmcm.driver import BaseDriver, CommandKind, DriverSettings
 from youbot_fdi.tmcm.transport import open_bus
+from youbot_fdi.timing import apply_scheduling, parse_cores
 from youbot_fdi.topics import DIAGNOSTICS, JOINT_STATES, WHEEL_COMMANDS
 
 NODE_NAME = 'driver_shim'
@@ -40,10 +46,17 @@ class DriverShimNode(Node):
         self.names = list(self.model.wheel_names)
         self.hardware_ids = {name: f'tmcm-0x{module:02x}' for name, module in
                              zip(self.names, self.settings.module_ids)}
+        # Before the CAN threads start, so that they inherit priority and affinity.
+        for line in apply_scheduling(self.settings.realtime_priority,
+                                     parse_cores(self.settings.cpu_cores)):
+            self.get_logger().info(line)
+        self.get_logger().info(
+            f'a cycle later than {self.settings.controller_timeout:g} s stops the modules '
+            '(their controller timeout, GP 90); late cycles are counted on /diagnostics')
+        self.joint_pub = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
         bus = open_bus(self.settings.can_interface, self.settings.can_channel)
         self.driver = BaseDriver(self.model, bus, self.settings, clock=lambda: now_seconds(self),
-                                 owns_bus=True)
-        self.joint_pub = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
+                                 owns_bus=True, on_sample=self.publish_sample)
         self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
         self.create_subscription(JointState, WHEEL_COMMANDS, self.on_command, SENSOR_QOS)
         self.create_service(Trigger, '~/switch_on_motors', self.on_switch_on)
@@ -51,7 +64,6 @@ class DriverShimNode(Node):
         for name in self.names:
             self.create_service(Trigger, f'~/switch_off_motor_{wheel_suffix(name)}',
                                 lambda request, response, name=name: self.on_motor_off(name, response))
-        self._last_stamp = None
         self._configured = False
         self._recoveries_told = 0
         self.create_timer(1.0 / self.settings.cycle_rate, self.on_cycle)
@@ -96,16 +108,16 @@ class DriverShimNode(Node):
                 'a module stopped on its controller timeout (no process data for '
                 f'{self.settings.controller_timeout:g} s: this cycle ran late) and was cleared '
                 f'({self._recoveries_told} so far)', throttle_duration_sec=2.0)
-        sample = self.driver.sample()
-        if sample is None or sample.stamp == self._last_stamp:
-            return
-        self._last_stamp = sample.stamp
+
+    def publish_sample(self, sample):
+        """One /joint_states message per closed cycle (the driver calls it in cycle order, from
+        the CAN receive thread or from the cycle timer)."""
         msg = JointState()
         msg.header.stamp = seconds_to_stamp(sample.stamp)
         msg.name = self.names
-        msg.position = [float(v) for v in sample.position]
-        msg.velocity = [float(v) for v in sample.velocity]
-        msg.effort = [float(v) for v in sample.effort]
+        msg.position = sample.position.tolist()
+        msg.velocity = sample.velocity.tolist()
+        msg.effort = sample.effort.tolist()
         self.joint_pub.publish(msg)
 
     def publish_diagnostics(self):

@@ -72,7 +72,7 @@ class ObserverNode(Node):
         self.labels = Prediction.labels(self.names)
         self.generator = ResidualGenerator(self.model, self.settings)
         self.observer = self.generator.observer
-        self.mapper = SampleMapper(self.names)
+        self.mapper = SampleMapper(self.names, keep_partial=True)
         self.repeated = RepeatedMessages()  # re-sent messages, left out as in replay
         self.warnings = InputWarnings(self, warn_interval)
         self.predicted_pub = self.create_publisher(JointState, PREDICTED, STREAM_QOS)

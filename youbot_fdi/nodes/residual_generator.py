@@ -65,7 +65,7 @@ class ResidualGeneratorNode(Node):
         self.names = self.model.wheel_names
         self.signs = self.model.kinematics.drive_signs
         self.evaluator = ResidualEvaluator(self.model, self.settings)
-        self.mapper = SampleMapper(self.names)
+        self.mapper = SampleMapper(self.names, keep_partial=True)
         self.counters = {'skipped_unstamped': 0, 'dropped_unpaired': 0}
         self.samples, self.predictions = {}, {}  # stamp -> waiting for its counterpart
         self.warnings = InputWarnings(self, warn_interval)

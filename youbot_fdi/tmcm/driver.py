@@ -1,8 +1,14 @@
 """The base driver behind the ``driver_shim`` node: wheel commands in, wheel samples out, over CAN.
 
 Plain Python (python-can, no rclpy), so tests and tools can drive a base without ROS. Per cycle it
-sends every module its process-data command; the modules' status frames come back asynchronously
-and are assembled into a :class:`BaseSample` in wheel units (rad, rad/s, N·m), driver convention.
+sends every module its process-data command; the modules' status frames come back asynchronously,
+each echoing the cycle it answers, and are assembled **per cycle** into one :class:`BaseSample` in
+wheel units (rad, rad/s, N·m), driver convention: every wheel's readings from that cycle, stamped
+with the cycle's time, as one EtherCAT frame reads every slave. A sample is complete once every
+module has answered its cycle; a module that has not answered by the time the next cycle starts
+gets NaN for its entries (counted per wheel as ``missed_cycles``), never its previous value, which
+would read as a frozen encoder. An answer that comes after its cycle was closed is counted
+(``late_answers``) and dropped. ``on_sample`` is called with each sample as it is closed.
 
 Safety: a **command watchdog** turns a command older than ``command_timeout`` into zero speed (the
 original youBot driver keeps sending the last command forever). ``motors_off`` commands 0 mA in
@@ -13,6 +19,7 @@ and counted (``timeout_recoveries``); the original driver only logs the flag, wh
 stopped for good (youbot_driver issue #10, whose workaround was this). ``recover_controller_timeout:
 false`` keeps it stopped until ``motors_on``.
 """
+from collections import deque
 from dataclasses import dataclass
 import enum
 import threading
@@ -27,10 +34,14 @@ from youbot_fdi.tmcm.process_data import (CYCLE_MODULO, MotorCommand, ProcessDat
                                           SAMPLE_TIME_MODULO, StatusAssembler)
 from youbot_fdi.tmcm.tmcl import decode_reply_can, TmclCommand, TmclRequest
 from youbot_fdi.tmcm.transport import CanTransport
+from youbot_fdi.timing import CycleTiming, parse_cores
 
 
 #: Fraction of the clock-offset error corrected per sample (a slow tracking filter).
 CLOCK_TRACKING = 0.01
+MAX_REALTIME_PRIORITY = 99  # SCHED_FIFO priorities are 1..99 on Linux
+#: Closed cycle numbers remembered, so that a late answer is told from a new cycle's first one.
+CLOSED_CYCLES_KEPT = 16
 
 
 class CommandKind(str, enum.Enum):
@@ -65,6 +76,8 @@ class DriverSettings:
     controller_timeout: float = 0.1  # written to every module's GP 90 at start [s]
     recover_controller_timeout: bool = True  # clear a tripped GP 90 once commands are fresh again
     diagnostics_rate: float = 1.0  # [Hz]
+    realtime_priority: int = 0  # SCHED_FIFO priority 1..99 where permitted; 0: default scheduler
+    cpu_cores: str = ''  # CPU affinity, e.g. '1' or '0,1'; empty: any core
 
     def validate(self, source='<settings>'):
         """Raise ConfigError on unusable values."""
@@ -76,6 +89,12 @@ class DriverSettings:
             problems.append('stale_cycles must be >= 1')
         if self.controller_timeout < 0:
             problems.append('controller_timeout must be >= 0')
+        if not 0 <= self.realtime_priority <= MAX_REALTIME_PRIORITY:
+            problems.append(f'realtime_priority must be 0..{MAX_REALTIME_PRIORITY}')
+        try:
+            parse_cores(self.cpu_cores)
+        except ValueError as err:
+            problems.append(str(err))
         if len(set(self.module_ids)) != len(self.module_ids) or self.host_id in self.module_ids:
             problems.append('module_ids must be distinct and differ from host_id')
         if problems:
@@ -85,14 +104,37 @@ class DriverSettings:
 
 @dataclass(frozen=True)
 class BaseSample:
-    """The latest reading of every wheel (driver convention); arrays of shape (n,)."""
+    """Every wheel's reading from one process-data cycle (driver convention); arrays of shape
+    (n,), NaN for a wheel whose module did not answer that cycle."""
 
-    stamp: float  # driver-clock time of the cycle the newest status answers [s]
+    stamp: float  # the cycle's time on the driver clock: when its modules sampled [s]
     position: np.ndarray  # [rad]
     velocity: np.ndarray  # [rad/s]
     effort: np.ndarray  # from the measured motor current [N·m]
-    error_flags: np.ndarray  # int
-    age: np.ndarray  # time since each wheel's status arrived [s]; inf if never
+    error_flags: np.ndarray  # int (0 where the module did not answer)
+    age: np.ndarray  # time since each wheel's module last answered, at closing [s]; inf if never
+    cycle: int = 0  # the process-data cycle counter (0..255)
+
+    @property
+    def answered(self):
+        """Wheels (n,) bool whose module answered this cycle."""
+        return np.isfinite(self.position)
+
+
+class _CycleSlot:
+    """The answers of one process-data cycle as they arrive (NaN until a module answers)."""
+
+    def __init__(self, cycle, sent_at, n):
+        self.cycle = cycle
+        self.sent_at = sent_at  # driver clock [s]
+        self.position = np.full(n, np.nan)
+        self.velocity = np.full(n, np.nan)
+        self.effort = np.full(n, np.nan)
+        self.flags = np.zeros(n, dtype=np.int64)
+        self.stamps = np.full(n, np.nan)  # each module's sample time on the driver clock [s]
+
+    def complete(self):
+        return bool(np.all(np.isfinite(self.stamps)))
 
 
 @dataclass(frozen=True)
@@ -116,10 +158,14 @@ class BaseDriver:
     settings : DriverSettings
     clock : callable
         Returns the current time [s] (the node passes ROS time, so sim time works).
+    on_sample : callable, optional
+        Called with each :class:`BaseSample` as its cycle closes, in cycle order: from the CAN
+        receive thread when the last module answers, or from :meth:`cycle` when the next cycle
+        starts with modules still silent.
     """
 
     def __init__(self, model, bus, settings=DriverSettings(), ids=ProcessDataIds(),
-                 clock=time.monotonic, owns_bus=False):
+                 clock=time.monotonic, owns_bus=False, on_sample=None):
         settings.validate()
         n = model.kinematics.n_wheels
         if len(settings.module_ids) != n:
@@ -138,12 +184,24 @@ class BaseDriver:
         for k, module in enumerate(settings.module_ids):
             for part, can_id in enumerate(ids.status_ids(module)):
                 self._status_ids[can_id] = (k, part)
-        self._position = np.zeros(n)
-        self._velocity = np.zeros(n)
-        self._effort = np.zeros(n)
-        self._flags = np.zeros(n, dtype=np.int64)
+        self._flags = np.zeros(n, dtype=np.int64)  # each module's latest flags (health)
         self._received = np.full(n, -np.inf)
-        self._newest = -np.inf
+        self.on_sample = on_sample
+        self._open = {}  # cycle counter -> _CycleSlot still waiting for answers
+        self._closed = deque(maxlen=CLOSED_CYCLES_KEPT)
+        self._ready = deque()  # closed samples not yet handed to on_sample
+        self._deliver_lock = threading.Lock()
+        self._latest = None  # the last closed BaseSample
+        self._last_stamp = -np.inf
+        #: per wheel: cycles closed without its module's answer
+        self.missed_cycles = np.zeros(n, dtype=np.int64)
+        self.late_answers = 0  # answers that came after their cycle was closed
+        self.silent_cycles = 0  # cycles closed with no answer at all (no sample)
+        self.samples_closed = 0
+        period = 1.0 / settings.cycle_rate
+        #: the host's cycle: period and lateness; late past the modules' controller timeout
+        self.timing = CycleTiming(period, late_after=settings.controller_timeout - period
+                                  if settings.controller_timeout > period else period)
         self._command_kind = CommandKind.VELOCITY
         self._command = np.zeros(n)
         self._command_stamp = -np.inf
@@ -201,14 +259,21 @@ class BaseDriver:
                 for k, command in enumerate(commands)]
 
     def cycle(self, now=None):
-        """Send one process-data command to every module; returns how many went out."""
+        """Close the cycle before (its silent modules get NaN), then send one process-data
+        command to every module; returns how many went out."""
         now = self.clock() if now is None else now
         with self._lock:
+            self.timing.tick(now)
+            self._close_open()
             commands = self._module_commands(now)
             self.cycle_count = (self.cycle_count + 1) % CYCLE_MODULO
             cycle = self.cycle_count
             self._sent_at[cycle] = now
+            if cycle in self._closed:
+                self._closed.remove(cycle)  # the counter wrapped: a new cycle, not a late one
+            self._open[cycle] = _CycleSlot(cycle, now, self.n_wheels)
             recover = self._timeouts_to_clear(now)
+        self._deliver()
         sent = 0
         for module, (mode, value) in zip(self.settings.module_ids, commands):
             sent += self.transport.send(self.ids.command_id(module),
@@ -250,13 +315,71 @@ class BaseDriver:
             status = self._assembler.add(self.settings.module_ids[index], part, data)
             if status is None:
                 return
-            now = self._sample_stamp(status)
-            self._position[index] = float(self.drive.ticks_to_wheel_angle(status.position))
-            self._velocity[index] = float(self.drive.rpm_to_wheel_speed(status.velocity))
-            self._effort[index] = float(self.drive.milliamps_to_torque(status.current))
             self._flags[index] = status.error_flags
-            self._received[index] = now
-            self._newest = max(self._newest, now)  # a later estimate of the clock offset never steps back
+            self._received[index] = self.clock()
+            slot = self._open.get(status.cycle)
+            if slot is None:
+                if status.cycle in self._closed:  # its cycle was closed without it
+                    self.late_answers += 1
+                    return
+                # a cycle this driver did not send (another master, or a restart): take it as is
+                slot = self._open[status.cycle] = _CycleSlot(
+                    status.cycle, self._sent_at.get(status.cycle, self.clock()), self.n_wheels)
+            slot.stamps[index] = self._sample_stamp(status)
+            slot.position[index] = float(self.drive.ticks_to_wheel_angle(status.position))
+            slot.velocity[index] = float(self.drive.rpm_to_wheel_speed(status.velocity))
+            slot.effort[index] = float(self.drive.milliamps_to_torque(status.current))
+            slot.flags[index] = status.error_flags
+            if not slot.complete():
+                return
+            for older in [c for c in self._open.values() if c is not slot and c.sent_at <= slot.sent_at]:
+                self._close(older)  # an older cycle still open: its silent modules are lost
+            self._close(slot)
+        self._deliver()
+
+    def close_cycles(self):
+        """Close every open cycle now (its deadline has passed: e.g. a lockstep rig that has
+        seen every frame handled); the modules that did not answer get NaN."""
+        with self._lock:
+            self._close_open()
+        self._deliver()
+
+    def _close_open(self):
+        for slot in list(self._open.values()):
+            self._close(slot)
+
+    def _close(self, slot):
+        """Close ``slot``'s cycle: one :class:`BaseSample` (NaN for the modules that did not
+        answer), queued for :meth:`_deliver`. Call with the lock."""
+        del self._open[slot.cycle]
+        self._closed.append(slot.cycle)
+        answered = np.isfinite(slot.stamps)
+        self.missed_cycles += ~answered
+        if not answered.any():
+            self.silent_cycles += 1
+            return
+        # The cycle's time: when its modules sampled (their clocks, mapped to the driver's); a
+        # later estimate of the clock offset never steps back before the last sample's stamp.
+        stamp = max(float(np.mean(slot.stamps[answered])), self._last_stamp)
+        self._last_stamp = stamp
+        now = self.clock()
+        sample = BaseSample(stamp, slot.position, slot.velocity, slot.effort, slot.flags,
+                            now - self._received, slot.cycle)
+        self._latest = sample
+        self.samples_closed += 1
+        self._ready.append(sample)
+
+    def _deliver(self):
+        """Hand the closed samples to ``on_sample`` in cycle order (outside the driver's lock; one
+        caller at a time, whichever thread closed them)."""
+        with self._deliver_lock:
+            while True:
+                with self._lock:
+                    if not self._ready:
+                        return
+                    sample = self._ready.popleft()
+                if self.on_sample is not None:
+                    self.on_sample(sample)
 
     def _sample_stamp(self, status):
         """When the module sampled this state, on the driver's clock.
@@ -285,14 +408,10 @@ class BaseDriver:
             self._clock_offset += gain * ((sent - module_time) - self._clock_offset)
         return module_time + self._clock_offset
 
-    def sample(self, now=None):
-        """The latest :class:`BaseSample`, or None before every wheel has reported once."""
-        now = self.clock() if now is None else now
+    def sample(self):
+        """The sample of the last closed cycle (:class:`BaseSample`), or None before one."""
         with self._lock:
-            if not np.all(np.isfinite(self._received)):
-                return None
-            return BaseSample(self._newest, self._position.copy(), self._velocity.copy(),
-                              self._effort.copy(), self._flags.copy(), now - self._received)
+            return self._latest
 
     # ------------------------------------------------------------------ TMCL client
     def request(self, wheel, command, type_, value=0, motor=0):
@@ -359,12 +478,14 @@ class BaseDriver:
         with self._lock:
             received, flags = self._received.copy(), self._flags.copy()
             incomplete = self._assembler.incomplete
+            missed = self.missed_cycles.copy()
+            timing = self.timing.summary()
         records = []
         for index, name in enumerate(self.wheel_names):
             age = now - received[index]
             names = describe_flags(int(flags[index]))
             values = {'age_s': f'{age:.3f}', 'error_flags': f'0x{int(flags[index]):05X}',
-                      'flags': ' '.join(names) or 'none'}
+                      'flags': ' '.join(names) or 'none', 'missed_cycles': str(int(missed[index]))}
             if not np.isfinite(received[index]):
                 records.append(Health(name, Level.STALE, 'no data from the module yet', values))
             elif age > stale_after:
@@ -382,6 +503,13 @@ class BaseDriver:
                        'command_watchdog': 'tripped' if self.command_is_stale(now) else 'ok',
                        'motors': 'on' if self.motors_enabled else 'off',
                        'controller_timeouts_cleared': str(self.timeout_recoveries),
+                       'samples': str(self.samples_closed),
+                       'incomplete_cycles': str(int(missed.sum())),
+                       'late_answers': str(self.late_answers),
+                       'silent_cycles': str(self.silent_cycles),
+                       # A cycle later than this stops the modules (their GP 90 timeout).
+                       'controller_timeout_ms': f'{1000.0 * self.settings.controller_timeout:g}',
+                       **timing.values('cycle_'),
                        'last_error': last_error
                        or self.last_rejection})
         problems = sum(counters.get(k, 0) for k in ('malformed', 'send_errors', 'error_frames',

@@ -1,7 +1,7 @@
 """A virtual base and a driver on a private in-process virtual CAN channel, stepped in lockstep.
 
-Deterministic: every cycle the driver sends its commands, both sides handle every frame, then the
-base simulates one cycle. Used to make recordings, by the benchmark and by the tests.
+Deterministic: every cycle the driver sends its commands, both sides handle every frame, the
+driver closes the cycle (a module that did not answer gets NaN), then the base simulates one cycle. Used to make recordings, by the benchmark and by the tests.
 """
 from dataclasses import replace
 import time
@@ -59,6 +59,7 @@ class LockstepBase:
             self.driver.set_command(kind, command)
         self.driver.cycle()
         self.settle()
+        self.driver.close_cycles()  # every answer is in: a silent module gets NaN this cycle
         self.base.advance(self.cycle_time)
         return self.driver.sample()
 
@@ -68,6 +69,7 @@ class LockstepBase:
             self.step(kind, command)
         self.driver.cycle()
         self.settle()
+        self.driver.close_cycles()
         return self.driver.sample()
 
     def close(self):

@@ -1,0 +1,141 @@
+"""The driver core (``tmcm/driver.py``): one sample per process-data cycle, every wheel's readings
+from that cycle; a module that does not answer gets NaN, never its previous reading (issue 33)."""
+import can
+import numpy as np
+import pytest
+
+from tmcm_rig import forward_command, make_rig, new_channel
+from youbot_fdi.model import load_model
+from youbot_fdi.tmcm.driver import BaseDriver, DriverSettings
+from youbot_fdi.tmcm.process_data import MotorStatus, ProcessDataIds
+from youbot_fdi.timing import CycleTiming, parse_cores
+
+
+class Clock:
+    """A settable driver clock [s]."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.fixture()
+def driver():
+    """A driver on a bus of its own, fed status frames by hand (no modules)."""
+    model = load_model('youbot')
+    clock, samples = Clock(), []
+    bus = can.Bus(interface='virtual', channel=new_channel())
+    made = BaseDriver(model, bus, DriverSettings(), clock=clock, owns_bus=True,
+                      on_sample=samples.append)
+    made.test_clock, made.test_samples = clock, samples
+    yield made
+    made.close()
+
+
+def answer(driver, wheel, cycle, ticks=1000, rpm=500, milliamps=300, sample_time=0):
+    """Wheel ``wheel``'s module answers ``cycle`` (its three status frames, as the receive thread
+    hands them to the driver)."""
+    module = driver.settings.module_ids[wheel]
+    status = MotorStatus(ticks, rpm, milliamps, 0, rpm, 2, cycle, sample_time)
+    for can_id, payload in zip(ProcessDataIds().status_ids(module), status.encode()):
+        driver._on_frame(can_id, payload, 0.0)
+
+
+def test_a_cycle_is_one_sample_once_every_module_answered(driver):
+    driver.cycle()
+    cycle = driver.cycle_count
+    for wheel in range(3):
+        answer(driver, wheel, cycle, ticks=1000 + wheel)
+    assert driver.test_samples == []  # not before the last module has answered
+    answer(driver, 3, cycle, ticks=1003)
+    (sample,) = driver.test_samples
+    assert sample.cycle == cycle and sample.answered.all()
+    np.testing.assert_allclose(sample.position,
+                               driver.drive.ticks_to_wheel_angle(np.arange(1000, 1004)))
+
+
+def test_a_module_that_does_not_answer_its_cycle_gets_nan_not_its_previous_reading(driver):
+    driver.cycle()
+    first = driver.cycle_count
+    for wheel in range(4):
+        answer(driver, wheel, first, ticks=1000)
+    driver.test_clock.now += 0.01
+    driver.cycle()
+    second = driver.cycle_count
+    for wheel in (0, 1, 3):  # wheel 2 stays silent
+        answer(driver, wheel, second, ticks=2000)
+    assert len(driver.test_samples) == 1  # open until the cycle's deadline: the next cycle
+    driver.test_clock.now += 0.01
+    driver.cycle()
+    sample = driver.test_samples[1]
+    assert list(sample.answered) == [True, True, False, True]
+    assert np.isnan([sample.position[2], sample.velocity[2], sample.effort[2]]).all()
+    np.testing.assert_allclose(sample.position[[0, 1, 3]], driver.drive.ticks_to_wheel_angle(2000))
+    assert list(driver.missed_cycles) == [0, 0, 1, 0]
+    bus = {h.name: h for h in driver.health()}
+    assert bus['wheel_joint_bl'].values['missed_cycles'] == '1'
+    assert bus['bus'].values['incomplete_cycles'] == '1'
+
+
+def test_an_answer_after_its_cycle_closed_is_dropped_and_counted(driver):
+    driver.cycle()
+    late = driver.cycle_count
+    for wheel in range(3):
+        answer(driver, wheel, late)
+    driver.cycle()  # closes the first cycle without wheel 3
+    answer(driver, 3, late)
+    assert driver.late_answers == 1
+    assert len(driver.test_samples) == 1 and not driver.test_samples[0].answered[3]
+
+
+def test_samples_come_in_cycle_order_one_per_cycle_in_lockstep():
+    rig = make_rig()
+    delivered = []
+    rig.driver.on_sample = delivered.append
+    try:
+        for _ in range(20):
+            rig.step('velocity', forward_command(rig.model))
+    finally:
+        rig.close()
+    assert len(delivered) == 20
+    assert all(s.answered.all() for s in delivered)
+    stamps = np.array([s.stamp for s in delivered])
+    np.testing.assert_allclose(np.diff(stamps), 0.01, atol=1.5e-3)  # the module clock is in ms
+
+
+def test_a_silent_module_in_lockstep_reads_nan_from_its_first_missed_cycle():
+    from youbot_fdi.faults import FaultKind
+    rig = make_rig()
+    try:
+        rig.run(0.5, 'velocity', forward_command(rig.model))
+        rig.base.inject(FaultKind.COMM_LOSS, 'wheel_joint_bl')
+        sample = rig.step('velocity', forward_command(rig.model))
+    finally:
+        rig.close()
+    assert list(sample.answered) == [True, True, False, True]
+
+
+def test_cycle_timing_reports_period_lateness_and_late_cycles():
+    timing = CycleTiming(0.01, late_after=0.05)
+    for now in (0.0, 0.01, 0.02, 0.035, 0.045, 0.145):
+        timing.tick(now)
+    summary = timing.summary()
+    assert summary.cycles == 6 and summary.late_cycles == 1  # the 0.1 s period: 0.09 s late
+    assert summary.period_max == pytest.approx(0.1)
+    assert summary.lateness_max == pytest.approx(0.09)
+    assert summary.period_p50 == pytest.approx(0.01)
+    assert summary.values()['period_p50_ms'] == '10.00'
+
+
+def test_cpu_cores_are_parsed_or_refused_with_the_text():
+    assert parse_cores('') == () and parse_cores('1') == (1,) and parse_cores('1, 0') == (0, 1)
+    with pytest.raises(ValueError, match='two'):
+        parse_cores('two')
+
+
+def test_unpermitted_scheduling_is_reported_not_fatal():
+    from youbot_fdi.timing import apply_scheduling
+    lines = apply_scheduling(priority=0, cores=(10_000,))  # no such core
+    assert len(lines) == 1 and 'not applied' in lines[0]
