@@ -1,4 +1,5 @@
 """Fault reactions (issue 15): the wheel allocation without lost wheels and the reaction policy."""
+from dataclasses import replace
 import math
 
 import numpy as np
@@ -14,6 +15,8 @@ from youbot_fdi.model.profile import load_model
 from youbot_fdi.settings import load_settings
 
 TWIST = np.array([0.3, -0.2, 0.5])  # [m/s, m/s, rad/s]
+#: The policy acting on every alarm at once (the confirmation has tests of its own).
+IMMEDIATE = ReactionSettings(react=True, confirmation_time=0.0)
 
 
 def omni_ring(count, radius=0.2, wheel=0.05):
@@ -68,8 +71,9 @@ def event(level, wheel, fault, stamp=1.0):
 
 def test_reactor_follows_the_policy_and_reset_ends_it(tmp_path):
     kinematics = load_model('youbot').kinematics
-    reactor = Reactor(kinematics, load_settings(ReactionSettings, 'kinematics_bridge',
-                                                _reactions_yaml(tmp_path, react=True)))
+    settings = load_settings(ReactionSettings, 'kinematics_bridge', _reactions_yaml(tmp_path, react=True))
+    assert settings.confirmation_time > 0.0  # shipped: reactions wait for a confirmed alarm
+    reactor = Reactor(kinematics, replace(settings, confirmation_time=0.0))
     started = reactor.on_event(event('ERROR', 'wheel_joint_fl', 'torque_loss'))
     assert [(r.level, r.action, r.wheel) for r in started] == [('INFO', 'degrade', 'wheel_joint_fl')]
     assert reactor.degraded == ['wheel_joint_fl'] and not reactor.stopped and reactor.driving_degraded
@@ -100,7 +104,7 @@ def test_reactor_follows_the_policy_and_reset_ends_it(tmp_path):
 def test_a_base_condition_neither_starts_nor_ends_a_reaction(condition):
     """The base's WARN/OK conditions share the base's component (wheel null) with comm_loss:
     their OK must not end the stop a comm_loss started."""
-    reactor = Reactor(load_model('youbot').kinematics, ReactionSettings(react=True))
+    reactor = Reactor(load_model('youbot').kinematics, IMMEDIATE)
     assert reactor.on_event(event('ERROR', None, 'comm_loss'))[0].action == 'stop'
     assert reactor.on_event(event('WARN', None, condition, 1.5)) == []
     assert reactor.on_event(event('OK', None, condition, 2.0)) == [] and reactor.stopped
@@ -110,19 +114,58 @@ def test_a_base_condition_neither_starts_nor_ends_a_reaction(condition):
 
 def test_degrading_a_base_that_would_lose_rank_stops_it_instead():
     robotino = load_model('robotino').kinematics
-    reactor = Reactor(robotino, ReactionSettings(react=True))
+    reactor = Reactor(robotino, IMMEDIATE)
     reactions = reactor.on_event(event('ERROR', robotino.platform.names[0], 'friction'))
     assert [r.action for r in reactions] == ['degrade', 'stop'] and 'rank' in reactions[-1].detail
     assert reactor.stopped
-    youbot = Reactor(load_model('youbot').kinematics, ReactionSettings(react=True))
+    youbot = Reactor(load_model('youbot').kinematics, IMMEDIATE)
     youbot.on_event(event('ERROR', 'wheel_joint_fl', 'torque_loss'))
     second = youbot.on_event(event('ERROR', 'wheel_joint_br', 'encoder_freeze'))  # two wheels lost
     assert [r.action for r in second] == ['substitute', 'stop', 'stop'] and youbot.stopped
 
 
+def test_a_reaction_waits_until_its_alarm_has_stood_the_confirmation_time():
+    reactor = Reactor(load_model('youbot').kinematics, ReactionSettings(react=True))
+    wait = reactor.settings.confirmation_time
+    assert reactor.on_event(event('ERROR', 'wheel_joint_fl', 'stuck', 1.0)) == []
+    assert reactor.confirm(1.0 + 0.5 * wait) == [] and not reactor.stopped
+    assert [r.action for r in reactor.confirm(1.0 + wait)] == ['stop'] and reactor.stopped
+    assert reactor.confirm(5.0) == []  # once
+
+
+def test_an_alarm_cleared_before_its_confirmation_starts_nothing():
+    reactor = Reactor(load_model('youbot').kinematics, ReactionSettings(react=True))
+    wait = reactor.settings.confirmation_time
+    assert reactor.on_event(event('ERROR', 'wheel_joint_fr', 'runaway', 1.0)) == []
+    assert reactor.on_event(event('OK', 'wheel_joint_fr', 'runaway', 1.0 + 0.5 * wait)) == []
+    assert reactor.confirm(1.0 + 2 * wait) == []
+    assert not reactor.stopped and reactor.motors_to_switch_off() == []
+
+
+@pytest.mark.parametrize('confirmation_time', [0.0, 0.1])
+def test_several_wheels_frozen_at_once_are_neither_substituted_nor_stopped(confirmation_time):
+    """Two wheels' readings frozen within one confirmation: the data path repeats old readings
+    (a base-level data problem); substituting them would stop the base on a false alarm."""
+    reactor = Reactor(load_model('youbot').kinematics,
+                      ReactionSettings(react=True, confirmation_time=confirmation_time))
+    reactions = (reactor.on_event(event('ERROR', 'wheel_joint_fl', 'encoder_freeze', 1.0))
+                 + reactor.on_event(event('ERROR', 'wheel_joint_fr', 'encoder_freeze', 1.01))
+                 + reactor.confirm(1.01 + confirmation_time))
+    if confirmation_time:  # both waited: neither is substituted
+        assert [r.action for r in reactions] == ['none', 'none']
+        assert reactor.substituted == []
+    else:  # the first stood alone when it came; the second is not added to it
+        assert [r.action for r in reactions] == ['substitute', 'none']
+        assert reactor.substituted == ['wheel_joint_fl']
+    assert 'base-level data problem' in reactions[-1].detail
+    assert not reactor.stopped
+
+
 def test_policy_is_validated_and_off_by_default():
     with pytest.raises(ConfigError, match='on_stuck'):
         ReactionSettings(on_stuck='explode').validate()
+    with pytest.raises(ConfigError, match='confirmation_time'):
+        ReactionSettings(confirmation_time=-1.0).validate()
     reactor = Reactor(load_model('youbot').kinematics)
     assert reactor.on_event(event('ERROR', 'wheel_joint_fl', 'stuck')) == []
     assert not reactor.stopped
@@ -143,7 +186,7 @@ def _degraded_drive(kinematics_model, fault, react, cap, **magnitudes):
     from youbot_fdi.tmcm.lockstep import LockstepBase
     kinematics = kinematics_model.kinematics
     script = DriveScript.from_config([{'name': 'forward', 'vx': 0.3, 'duration': 2.5}])
-    reactor = Reactor(kinematics, ReactionSettings(react=True, degraded_max_wheel_speed=cap))
+    reactor = Reactor(kinematics, replace(IMMEDIATE, degraded_max_wheel_speed=cap))
     cycle, commanded, actual, measured = 0.01, [], [], None
     with LockstepBase(kinematics_model, cycle, **magnitudes) as rig:
         for k in range(int(script.duration / cycle)):

@@ -46,8 +46,10 @@ class CycleTiming:
     ``nominal_period`` seconds (a timer, or a stream of samples).
 
     Lateness is how much later than one nominal period after the previous tick a tick came
-    (0 when on time or early). A tick later than ``late_after`` [s] counts as a late cycle
-    (for the driver shim: the modules' controller timeout, past which they stop their motors).
+    (0 when on time or early), or, for a stream of stamped samples, how long after its stamp a
+    sample arrived (``tick(now, due=stamp)``). A tick later than ``late_after`` [s] counts as a
+    late cycle (for the driver shim: the modules' controller timeout, past which they stop their
+    motors).
     """
 
     def __init__(self, nominal_period, late_after=math.inf, window=DEFAULT_WINDOW):
@@ -66,14 +68,15 @@ class CycleTiming:
         self.period_max = 0.0
         self.lateness_max = 0.0
 
-    def tick(self, now):
-        """One cycle started (or one sample arrived) at ``now`` [s]; returns its lateness [s]."""
+    def tick(self, now, due=None):
+        """One cycle started (or one sample arrived) at ``now`` [s], due at ``due`` [s] (default:
+        one nominal period after the last tick); returns its lateness [s]."""
         last, self._last = self._last, now
         self.cycles += 1
         if last is None:
             return 0.0
         period = now - last
-        lateness = max(0.0, period - self.nominal_period)
+        lateness = max(0.0, period - self.nominal_period if due is None else now - due)
         if len(self._periods) < self.window:
             self._periods.append(period)
             self._lateness.append(lateness)

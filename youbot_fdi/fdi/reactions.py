@@ -42,6 +42,9 @@ class ReactionSettings:
     #: firmware's factory maximum positioning velocity (4000 rpm motor, TMCM-1632 base.cfg).
     degraded_max_wheel_speed: float = 16.2
     motor_off_service: str = '/driver_shim/switch_off_motor'  # + '_<wheel suffix>'
+    #: a reaction starts only once its alarm has stood this long without clearing [s]: a reaction
+    #: to a false alarm (a wheel switched off, the base stopped) costs more than waiting
+    confirmation_time: float = 0.1
 
     def validate(self, source='<settings>'):
         for kind in FaultKind:
@@ -51,6 +54,9 @@ class ReactionSettings:
                 raise ConfigError(msg)
         if not self.degraded_max_wheel_speed > 0.0:
             msg = f'{source}: degraded_max_wheel_speed must be > 0, got {self.degraded_max_wheel_speed}'
+            raise ConfigError(msg)
+        if not self.confirmation_time >= 0.0:
+            msg = f'{source}: confirmation_time must be >= 0 s, got {self.confirmation_time}'
             raise ConfigError(msg)
 
     def action(self, fault):
@@ -94,6 +100,7 @@ class Reactor:
         self.settings = settings
         self.names = list(kinematics.platform.names)
         self._active = {}  # component (wheel or None) -> (fault, action)
+        self._pending = {}  # component -> the ERROR event waiting for its confirmation_time
         #: action -> the Allocation without its wheels (DEGRADE: driving, SUBSTITUTE: readings)
         self._around = {DEGRADE: None, SUBSTITUTE: None}
 
@@ -149,11 +156,34 @@ class Reactor:
 
     def on_event(self, event):
         """Take a fault event; returns the reactions it starts or ends (in order). An ERROR starts
-        its fault's action (replacing that component's previous one); an OK (cleared, or the
-        decision's reset) ends it."""
+        its fault's action (replacing that component's previous one) once it is confirmed: it
+        has stood ``confirmation_time`` without an OK (:meth:`confirm`; at once when that is
+        0); an OK (cleared, or the decision's reset) ends it, or drops it unconfirmed."""
         if (not self.settings.react or event.level not in ('ERROR', 'OK')
                 or event.fault in CONDITIONS):  # a base condition, not a fault: nothing to do
             return []
+        if event.level == 'OK' and self._pending.pop(event.wheel, None) is not None \
+                and event.wheel not in self._active:
+            return []  # cleared before it was confirmed: nothing was started
+        if event.level == 'ERROR' and self.settings.confirmation_time > 0.0:
+            self._pending[event.wheel] = event
+            return self.confirm(event.stamp)
+        return self._start(event)
+
+    def confirm(self, stamp):
+        """The reactions of the alarms confirmed by ``stamp`` [s] (they have stood
+        ``confirmation_time``); call with every sample's stamp."""
+        due = [e for e in self._pending.values()
+               if stamp - e.stamp >= self.settings.confirmation_time]
+        reactions = []
+        for event in sorted(due, key=lambda e: e.stamp):  # each still sees the others pending
+            reactions += self._start(event)
+        for event in due:
+            del self._pending[event.wheel]
+        return reactions
+
+    def _start(self, event):
+        """Start (ERROR) or end (OK) a component's reaction now."""
         component = event.wheel
         previous = self._active.pop(component, None)
         reactions = []
@@ -165,6 +195,13 @@ class Reactor:
             action = self.settings.action(event.fault)
             if component is None and action in (MOTOR_OFF, DEGRADE, SUBSTITUTE):
                 action = STOP  # a fault of the whole base: nothing to do per wheel
+            if action == SUBSTITUTE and self._frozen_elsewhere(component):
+                # Two wheels' readings frozen: two encoders failing together is far less likely
+                # than the data path repeating old readings (a base-level data problem), and
+                # substituting or stopping on it would act on a false alarm.
+                reactions.append(Reaction(event.stamp, NONE, component, event.fault,
+                                          SEVERAL_FROZEN))
+                return reactions + self._rebuild(event.stamp)
             if action != NONE:
                 self._active[component] = (event.fault, action)
                 reactions.append(Reaction(event.stamp, action, component, event.fault,
@@ -194,11 +231,19 @@ class Reactor:
             return np.asarray(speeds, dtype=float)
         return allocation.substitute(speeds)
 
+    def _frozen_elsewhere(self, component):
+        """True when another wheel's reading is substituted, or waits for confirmation as frozen."""
+        return (any(a == SUBSTITUTE for w, (_, a) in self._active.items() if w != component)
+                or any(self.settings.action(e.fault) == SUBSTITUTE
+                       for w, e in self._pending.items() if w != component))
+
     def motors_to_switch_off(self):
         """Wheel names whose motor a reaction wants off."""
         return [w for w, (_, a) in self._active.items() if a in SWITCHES_OFF and w is not None]
 
 
+SEVERAL_FROZEN = ("several wheels' readings look frozen at once: a base-level data problem, not "
+                  'a wheel fault; nothing substituted, the base not stopped')
 _DETAILS = {
     MOTOR_OFF: 'motor off through the driver shim; base stopped',
     STOP: 'base stopped (zero wheel commands) until the fault clears or decision ~/reset',

@@ -23,6 +23,16 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
 NAME_PREFIX = 'youbot_fdi'
 INPUT_WARN_INTERVAL = 1.0  # [s] between input-problem WARNs on /diagnostics (rate limit)
+#: The sample interval a node's timing report expects when identify measured none [s].
+DEFAULT_SAMPLE_INTERVAL = 0.01
+
+
+def timing_report(node, settings):
+    """A :class:`TimingReport` for an FDI node's input stream: nominal period the identified
+    sample interval (``DEFAULT_SAMPLE_INTERVAL`` without one); a sample is late once it arrives a
+    full period after its stamp."""
+    period = settings.sample_interval or DEFAULT_SAMPLE_INTERVAL
+    return TimingReport(node, period, late_after=period)
 
 
 def keep_discovery_local():
@@ -93,17 +103,58 @@ def health_to_diagnostics(node, records, component, hardware_ids=None, default_h
     return array
 
 
+def diagnostics_publisher(node):
+    """The node's one /diagnostics publisher (created on first use)."""
+    publisher = getattr(node, '_diagnostics_publisher', None)
+    if publisher is None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        publisher = node._diagnostics_publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
+    return publisher
+
+
+class TimingReport:
+    """A node's input timing on /diagnostics (``<node>: timing``, level OK, at ``rate`` Hz): the
+    period between the samples it receives and their lateness, how long after its header stamp
+    each arrived (p50, p99, max; :class:`~youbot_fdi.timing.CycleTiming`); a sample later than
+    ``late_after`` [s] is counted as late."""
+
+    def __init__(self, node, nominal_period, late_after, rate=1.0):
+        from youbot_fdi.timing import CycleTiming
+        self.node = node
+        self.timing = CycleTiming(nominal_period, late_after=late_after)
+        self.publisher = diagnostics_publisher(node)
+        node.create_timer(1.0 / rate, self.publish)
+
+    def tick(self, stamp):
+        """A sample stamped ``stamp`` [s] arrived now."""
+        self.timing.tick(now_seconds(self.node), due=stamp)
+
+    def publish(self):
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        if not self.timing.cycles:
+            return
+        name = self.node.get_name()
+        summary = self.timing.summary()
+        status = DiagnosticStatus(level=DiagnosticStatus.OK, name=f'{NAME_PREFIX}/{name}: timing',
+                                  hardware_id=name,
+                                  message=f'input period p50 {1000 * summary.period_p50:.1f} ms, '
+                                          f'lateness p99 {1000 * summary.lateness_p99:.1f} ms')
+        status.values = [KeyValue(key=k, value=v) for k, v in summary.values('input_').items()]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = seconds_to_stamp(now_seconds(self.node))
+        self.publisher.publish(array)
+
+
 class InputWarnings:
     """A node's WARN on /diagnostics naming the input problems counted since the last one (at
     most one every ``interval`` s; :class:`~youbot_fdi.samples.InputReport`): the messages
     themselves were skipped or restarted the residuals, never raised a fault."""
 
     def __init__(self, node, interval):
-        from diagnostic_msgs.msg import DiagnosticArray
         from youbot_fdi.samples import InputReport
         self.node = node
         self.report = InputReport(interval)
-        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
+        self.publisher = diagnostics_publisher(node)
 
     def check(self, counters):
         """Publish (and log) a WARN if ``counters`` (name -> running count) has new problems."""

@@ -19,11 +19,11 @@ from youbot_fdi.fdi.decision import DecisionMaker, OK
 from youbot_fdi.fdi.pipeline import configure, load_residual_data
 from youbot_fdi.fdi.residuals import ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.nodes.common import (declare_settings, LATCHED_QOS, NAME_PREFIX,
-                                     now_seconds, seconds_to_stamp, SENSOR_QOS, spin_nodes,
-                                     stamp_to_seconds)
+from youbot_fdi.nodes.common import (declare_settings, diagnostics_publisher, LATCHED_QOS,
+                                     NAME_PREFIX, now_seconds, seconds_to_stamp, SENSOR_QOS,
+                                     spin_nodes, stamp_to_seconds, timing_report)
 from youbot_fdi.nodes.conversions import BASE_COMPONENT, fault_array, LEVELS
-from youbot_fdi.topics import DIAGNOSTICS, FAULTS, RESIDUALS
+from youbot_fdi.topics import FAULTS, RESIDUALS
 
 NODE_NAME = 'decision'
 
@@ -43,7 +43,8 @@ class DecisionNode(Node):
         self.events = []
         self._last_stamp = None
         self.faults_pub = self.create_publisher(DiagnosticArray, FAULTS, LATCHED_QOS)
-        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
+        self.diag_pub = diagnostics_publisher(self)
+        self.timing = timing_report(self, self.settings)
         self.create_subscription(JointState, RESIDUALS, self.on_residuals, SENSOR_QOS)
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.create_timer(1.0 / rate, self.publish_diagnostics)
@@ -53,6 +54,7 @@ class DecisionNode(Node):
 
     def on_residuals(self, msg):
         stamp = stamp_to_seconds(msg.header.stamp)
+        self.timing.tick(stamp)
         try:
             frame = ResidualFrame.from_labelled(stamp, msg.name, msg.position, msg.velocity, self.names)
         except ValueError as err:

@@ -12,7 +12,10 @@ It listens to /youbot_fdi/faults; a runaway wheel's motor goes off through the d
 commands at once and on every /cmd_vel); torque_loss and friction drive the base on the other
 wheels; a frozen encoder's reading is replaced by its kinematic estimate for odometry and degraded
 driving, and its motor goes off (the module's loop runs on the frozen reading). An OK event
-(the fault cleared, or the decision's ``~/reset``) ends the wheel's reaction. Each reaction is
+(the fault cleared, or the decision's ``~/reset``) ends the wheel's reaction. A reaction starts only
+once its alarm has stood ``confirmation_time`` (on the /joint_states clock) without clearing, and
+never substitutes readings or stops the base because several wheels look frozen at once (a
+base-level data problem). Each reaction is
 published on ``/youbot_fdi/reactions`` (latched DiagnosticArray, one INFO event per status) and
 logged.
 """
@@ -89,10 +92,14 @@ class KinematicsBridgeNode(Node):
                                              velocity=self.kinematics.to_driver(speeds)))
 
     def on_faults(self, msg):
-        """Fault events -> reactions: published, logged, and acted on at once."""
+        """Fault events -> reactions (an alarm's once it is confirmed, :meth:`on_joint_states`)."""
         reactions = []
         for status in msg.status:
             reactions += self.reactor.on_event(event_from_status(status))
+        self.apply(reactions)
+
+    def apply(self, reactions):
+        """Reactions started or ended: published, logged, and acted on at once."""
         if not reactions:
             return
         for reaction in reactions:  # the motors a reaction switches off now
@@ -112,6 +119,8 @@ class KinematicsBridgeNode(Node):
             return
         dt = 0.0 if self._last_stamp is None else stamp - self._last_stamp
         self._last_stamp = stamp
+        if self.reactor.settings.react:  # alarms confirmed by now (the samples' clock)
+            self.apply(self.reactor.confirm(stamp))
         self._measured = self.reactor.readings(self.kinematics.from_driver(sample.velocity))
         if self.reactor.degraded and self._twist is not None and not self.reactor.stopped:
             # degraded driving follows the lost wheels' speeds at the sample rate, not /cmd_vel's

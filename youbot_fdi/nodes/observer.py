@@ -45,7 +45,7 @@ from youbot_fdi.fdi.residuals import ResidualGenerator
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, INPUT_WARN_INTERVAL, InputWarnings,
                                      now_seconds, SENSOR_QOS, spin_nodes, stamp_to_seconds,
-                                     STREAM_QOS)
+                                     STREAM_QOS, timing_report)
 from youbot_fdi.nodes.conversions import joint_state, labelled_vector
 from youbot_fdi.samples import message_time, RepeatedMessages, SampleMapper
 from youbot_fdi.topics import JOINT_STATES, PREDICTED, RESIDUALS, WHEEL_COMMANDS
@@ -75,6 +75,7 @@ class ObserverNode(Node):
         self.mapper = SampleMapper(self.names, keep_partial=True)
         self.repeated = RepeatedMessages()  # re-sent messages, left out as in replay
         self.warnings = InputWarnings(self, warn_interval)
+        self.timing = timing_report(self, self.settings)
         self.predicted_pub = self.create_publisher(JointState, PREDICTED, STREAM_QOS)
         self.residual_pub = (self.create_publisher(JointState, RESIDUALS, STREAM_QOS)
                              if self.fused else None)
@@ -91,6 +92,7 @@ class ObserverNode(Node):
 
     def on_joint_states(self, msg):
         stamp = float(message_time(stamp_to_seconds(msg.header.stamp), now_seconds(self)))
+        self.timing.tick(stamp)
         sample = self.mapper.joint_sample(stamp, msg.name,
                                           msg.position, msg.velocity, msg.effort)
         if sample is None or not self.repeated.fresh_sample(sample):  # bad, or re-sent: no fresh data

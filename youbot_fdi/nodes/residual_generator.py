@@ -26,7 +26,8 @@ from youbot_fdi.fdi.pipeline import configure
 from youbot_fdi.fdi.residuals import ResidualEvaluator
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, INPUT_WARN_INTERVAL, InputWarnings,
-                                     SENSOR_QOS, spin_nodes, stamp_to_seconds, STREAM_QOS)
+                                     SENSOR_QOS, spin_nodes, stamp_to_seconds, STREAM_QOS,
+                                     timing_report)
 from youbot_fdi.nodes.conversions import labelled_vector
 from youbot_fdi.samples import SampleMapper
 from youbot_fdi.topics import JOINT_STATES, PREDICTED, RESIDUALS
@@ -69,12 +70,14 @@ class ResidualGeneratorNode(Node):
         self.counters = {'skipped_unstamped': 0, 'dropped_unpaired': 0}
         self.samples, self.predictions = {}, {}  # stamp -> waiting for its counterpart
         self.warnings = InputWarnings(self, warn_interval)
+        self.timing = timing_report(self, self.settings)
         self.residual_pub = self.create_publisher(JointState, RESIDUALS, STREAM_QOS)
         self.create_subscription(JointState, JOINT_STATES, self.on_joint_states, SENSOR_QOS)
         self.create_subscription(JointState, PREDICTED, self.on_prediction, SENSOR_QOS)
 
     def on_joint_states(self, msg):
         stamp = stamp_to_seconds(msg.header.stamp)
+        self.timing.tick(stamp)
         if stamp <= 0.0:
             self.counters['skipped_unstamped'] += 1
             self.report_input()
