@@ -84,10 +84,27 @@ def test_an_answer_after_its_cycle_closed_is_dropped_and_counted(driver):
     late = driver.cycle_count
     for wheel in range(3):
         answer(driver, wheel, late)
-    driver.cycle()  # closes the first cycle without wheel 3
+    driver.test_clock.now += 0.01
+    driver.cycle()  # a period later: closes the first cycle without wheel 3
     answer(driver, 3, late)
     assert driver.late_answers == 1
     assert len(driver.test_samples) == 1 and not driver.test_samples[0].answered[3]
+
+
+def test_a_cycle_fired_right_after_another_leaves_it_open_for_its_answers(driver):
+    """A timer catching up fires two cycles a millisecond apart: the first one's answers are on
+    their way, not missing."""
+    driver.cycle()
+    first = driver.cycle_count
+    driver.test_clock.now += 0.001
+    driver.cycle()
+    second = driver.cycle_count
+    for wheel in range(4):
+        answer(driver, wheel, first)
+    for wheel in range(4):
+        answer(driver, wheel, second)
+    assert [s.cycle for s in driver.test_samples] == [first, second]
+    assert all(s.answered.all() for s in driver.test_samples) and driver.missed_cycles.sum() == 0
 
 
 def test_samples_come_in_cycle_order_one_per_cycle_in_lockstep():

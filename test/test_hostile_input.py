@@ -95,3 +95,32 @@ def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
         == pytest.approx(settings.data_timeout, abs=1e-6)
     assert len(residuals) == late
     assert silent_from < lost[0].stamp + 0.5  # raised while silent, not before
+
+
+def test_a_wheel_without_readings_is_its_comm_loss_never_a_frozen_encoder(harness):
+    """The driver shim gives NaN for a module that did not answer its cycle (issue 33): single
+    missing readings are missing data; a wheel silent for the data timeout is that wheel's
+    comm_loss (not the base's, not encoder_freeze), and OK again once it answers."""
+    harness.add(ObserverNode(context=harness.context))
+    harness.add(ResidualGeneratorNode(context=harness.context))
+    decision = harness.add(DecisionNode(context=harness.context))
+    faults = []
+    harness.probe.create_subscription(DiagnosticArray, '/youbot_fdi/faults',
+                                      lambda m: faults.extend(event_from_status(s) for s in m.status),
+                                      LATCHED_QOS)
+    joints = harness.probe.create_publisher(JointState, '/joint_states', 10)
+    count = [0]
+    silent_between = (300, 360)  # samples: 0.6 s without wheel bl
+
+    def publish():
+        k = count[0]
+        count[0] += 1
+        values = [0.0] * 4
+        if k % 7 == 3 or silent_between[0] <= k < silent_between[1]:  # one missing now and then
+            values[2] = math.nan
+        joints.publish(message(now_seconds(decision), values=values))
+
+    harness.spin_for(4.5, every=1.0 / RATE, action=publish)
+    changes = [(e.level, e.wheel, e.fault) for e in faults if e.level in ('ERROR', 'OK')]
+    assert changes[:2] == [('ERROR', 'wheel_joint_bl', 'comm_loss'), ('OK', 'wheel_joint_bl', 'comm_loss')]
+    assert all(wheel == 'wheel_joint_bl' for _, wheel, _ in changes)

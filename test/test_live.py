@@ -7,12 +7,14 @@ pytest.importorskip('rclpy')
 
 from fresh_process import in_fresh_process, run_demo_fresh  # noqa: E402
 from youbot_fdi.fdi.pipeline import build_pipeline  # noqa: E402
+from youbot_fdi.fdi.reactions import ReactionSettings  # noqa: E402
 from youbot_fdi.model.scenario import load_script  # noqa: E402
 from youbot_fdi.nodes.demo import DemoPlan  # noqa: E402
 
 _, SCRIPT = load_script()
 SCRIPT_NAMES = ('wheel_joint_fl', 'wheel_joint_fr', 'wheel_joint_bl', 'wheel_joint_br')  # youBot order
 LIVE_DELAY = 0.15  # [s] live detection allows for executor scheduling on a shared 2-core machine
+CONFIRMATION = ReactionSettings().confirmation_time  # [s] a reaction waits for its alarm to stand
 # Each demo runs in a fresh interpreter, as `youbot-fdi demo` does (why: fresh_process.py).
 
 
@@ -110,16 +112,16 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
         harness.close()
 
 
-def test_fault_free_live_drive_raises_no_alarm():
-    # composed: chosen when five processes on two cores stalled /joint_states past the 0.2 s comm
-    # timeout under pytest (cause found and mended since, docs/nodes.md); the separate layout is
-    # driven by the first test. This test is about false alarms of the FDI nodes.
-    plan = DemoPlan(SCRIPT.scaled_to(6.0), None, 'wheel_joint_fl', 0.0, console=False,
-                    layout='composed')
+@pytest.mark.parametrize('run_number', range(3))
+def test_fault_free_demo_raises_no_alarm(run_number):
+    """The README's main job without a fault, three times in a row (issue 33: the shim once
+    published stale wheels under new stamps, read as frozen encoders in 3 of 4 runs): no alarm
+    during the drive nor while the node processes start."""
+    plan = DemoPlan(SCRIPT, None, 'wheel_joint_fl', 0.0, console=False)
     run = run_demo_fresh(plan)
-    events, injected_at, start = run.events, run.injected_at, run.start
-    assert injected_at is None and start is not None
-    assert alarms(events) == []
+    assert run.injected_at is None and run.start is not None
+    assert alarms(run.events) == []
+    assert [e for e in run.before_drive if getattr(e, 'level', None) == 'ERROR'] == []
 
 
 REACTIONS = {'runaway': 'motor_off', 'stuck': 'stop', 'torque_loss': 'degrade',
@@ -168,7 +170,8 @@ def test_reactions_act_through_the_topics(fault, wheel):
     names = list(SCRIPT_NAMES)
     if fault in ('runaway', 'encoder_freeze'):  # a frozen reading's motor goes off too
         assert [index for _, index in stops] == [names.index(wheel)]
-        assert stops[0][0] - error.stamp <= 0.1
+        # once the alarm is confirmed (it stood confirmation_time), within 100 ms
+        assert stops[0][0] - error.stamp <= CONFIRMATION + 0.1
     if fault in ('runaway', 'stuck'):
         settled = [true for stamp, _, true in run.tracking if stamp > error.stamp + 1.0]
         assert settled and max(abs(v) for v in settled[-1]) < 0.05  # the base is at rest

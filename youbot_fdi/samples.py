@@ -20,6 +20,11 @@ class JointSample:
     velocity: np.ndarray  # [rad/s]
     effort: np.ndarray  # [N·m]; NaN where the message had none
 
+    def complete(self):
+        """True when every wheel has a reading (position and speed); a driver gives NaN for a
+        module that did not answer its cycle."""
+        return bool(np.isfinite(self.position).all() and np.isfinite(self.velocity).all())
+
 
 @dataclass(frozen=True)
 class CommandSample:

@@ -22,6 +22,13 @@ def add_parser(subparsers):
                         help='run the fault benchmark instead: its suites (see --suites), each '
                              'calibrated with identify as a user would (about 11 minutes on 2 '
                              'cores for all three)')
+    parser.add_argument('--live', action='store_true',
+                        help='run the live soak instead: youbot-fdi demo as a user runs it, the '
+                             'fault-free drive for --soak-minutes alone and beside a busy core '
+                             '(alarms, the shim\'s late cycles), then every demo fault on every '
+                             'wheel both ways (first alarm on the right wheel?); about 40 minutes')
+    parser.add_argument('--soak-minutes', type=float, default=10.0,
+                        help='length of each live soak [min] (default: 10)')
     parser.add_argument('--variations', type=int, default=3,
                         help='plants in the fault benchmark, the nominal one first (default: 3)')
     parser.add_argument('--seed', type=int, default=0, help='random seed of the fault benchmark')
@@ -41,6 +48,10 @@ def run(args):
     progress = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
     if args.faults:
         return run_faults(args, progress)
+    if args.live:
+        from youbot_fdi.bench.live import run_live
+        print(run_live(progress, args.soak_minutes), flush=True)
+        return 0
     from youbot_fdi.bench.speed import format_results, run_all
     print(format_results(run_all(progress=progress)))
     return 0

@@ -1,4 +1,6 @@
 """``youbot-fdi demo``: the main job, live: a virtual youBot, the driver shim and every FDI node."""
+import sys
+
 from youbot_fdi.faults import INJECTABLE
 
 NAME = 'demo'
@@ -21,6 +23,8 @@ def add_parser(subparsers):
     parser.add_argument('--wheel', default=DEFAULT_WHEEL, help='faulty wheel (joint name)')
     parser.add_argument('--at', type=float, default=DEFAULT_AT, help='fault onset [s into the drive]')
     parser.add_argument('--duration', type=float, help='stretch the drive to this many seconds')
+    parser.add_argument('--repeat', type=int, default=1, metavar='N',
+                        help='drive the script N times in a row (a soak; default: 1)')
     parser.add_argument('--events', help='write the fault events seen on /youbot_fdi/faults here')
     parser.add_argument('--script', help='drive script YAML (default: config/demo.yaml)')
     parser.add_argument('--record', metavar='DIR',
@@ -88,6 +92,8 @@ def write_summary(path, args, run, alarms, tracking):
         'tracking_rms_linear_mps': None if tracking is None else round(tracking[0], 5),
         'tracking_rms_angular_radps': None if tracking is None else round(tracking[1], 5),
         'tracking_from': tracking_window(args, run)[1],
+        'drive_start': run.start, 'injected_at': run.injected_at,
+        'shim': run.shim,
     }
     Path(path).write_text(json.dumps(summary, indent=2) + '\n')
 
@@ -107,7 +113,11 @@ def plan_fault_settings(args):
 def run(args):
     from youbot_fdi.model.scenario import load_script
     from youbot_fdi.nodes.demo import DemoPlan, run_demo
+    if args.repeat < 1:
+        print(f'youbot-fdi demo: error: --repeat takes a count >= 1, got {args.repeat}', file=sys.stderr)
+        return 1
     _, script = load_script(args.script, args.duration)
+    script = script.repeated(args.repeat)
     fault = None if args.fault == NONE else args.fault
     plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record,
                     layout=args.layout, react=args.react,
@@ -140,6 +150,11 @@ def run(args):
         print(f'  RMS tracking error from {window}: {tracking[0]:.3f} m/s, {tracking[1]:.3f} rad/s')
     if run.reactions:
         print('  reactions: ' + ', '.join(f'{r.action} ({r.wheel or "base"})' for r in run.reactions))
+    shim = run.shim
+    print(f"  driver shim: {shim['cycles']} cycles, lateness p99 {shim['lateness_p99']:.1f} ms, "
+          f"max {shim['lateness_max']:.1f} ms; {shim['late_cycles']} past the modules' "
+          f"{shim['controller_timeout_ms']:g} ms timeout; {shim['incomplete_cycles']} module "
+          'answers missing')
     if run.before_drive:
         print('  before the drive, while the nodes started (not counted above): '
               + ', '.join(f'{getattr(e, "action", None) or e.level} {e.wheel or "base"}: {e.fault}'

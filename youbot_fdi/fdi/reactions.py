@@ -106,6 +106,11 @@ class Reactor:
 
     # ------------------------------------------------------------------ state
     @property
+    def pending(self):
+        """True while an alarm waits for its confirmation (:meth:`confirm`)."""
+        return bool(self._pending)
+
+    @property
     def stopped(self):
         """True while a reaction holds the base still."""
         return any(action in (STOP, MOTOR_OFF) for _, action in self._active.values())

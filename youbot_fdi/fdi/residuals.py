@@ -577,7 +577,7 @@ class ResidualGenerator:
         """Residuals for one /joint_states sample (:class:`~youbot_fdi.samples.JointSample`):
         a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder). Also
         :attr:`last_prediction`, the observer's :class:`~youbot_fdi.fdi.observer.Prediction`."""
-        if not np.isfinite(sample.position).all() or not np.isfinite(sample.velocity).all():
+        if not sample.complete():
             self.last_prediction = None
             return self.evaluator.missing(sample)  # some wheels without a reading
         self.last_prediction = prediction = self.observer.update(sample)

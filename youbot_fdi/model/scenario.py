@@ -110,6 +110,13 @@ class DriveScript:
         return DriveScript(tuple(Segment(s.name, s.twist, s.duration * factor)
                                  for s in self.segments), self.max_acceleration)
 
+    def repeated(self, count):
+        """The script driven ``count`` times in a row (a soak)."""
+        if int(count) != count or count < 1:
+            msg = f'count must be a whole number >= 1, got {count!r}'
+            raise ValueError(msg)
+        return DriveScript(self.segments * int(count), self.max_acceleration)
+
     def as_steps(self):
         """The same segments without the acceleration limit: each twist commanded at once."""
         return DriveScript(self.segments)

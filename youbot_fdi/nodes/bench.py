@@ -21,14 +21,14 @@ import time
 
 import numpy as np
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.nodes.common import (freeze_startup_heap, keep_discovery_local, SENSOR_QOS,
-                                     shutdown_nodes, stamp_to_seconds, stop_node_processes,
-                                     STREAM_QOS)
+from youbot_fdi.nodes.common import (EXECUTOR_VARIABLE, executor_kind, freeze_startup_heap,
+                                     keep_discovery_local, make_executor, ros_init, SENSOR_QOS,
+                                     shutdown_nodes, spin_until_stopped, stamp_to_seconds,
+                                     stop_node_processes, STREAM_QOS)
 from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
@@ -38,22 +38,12 @@ RATE = 100.0  # [Hz]
 WARM_UP = 2.0  # [s] after every node is on the graph: discovery, first callbacks, caches
 START_TIMEOUT = 60.0  # [s] for the processes of a case to appear on the graph
 #: (name, FDI layout, one process per node, executor (:func:`make_executor`)). The events
-#: executor case shows what the executor's own cost is (docs/nodes.md); our executables do not
-#: use it: in rclpy 7.1.6 a node spinning it does not stop on SIGINT (it spins the CPU instead).
+#: executor cases are the opt-in of our executables (``YOUBOT_FDI_EXECUTOR=events``, driven one
+#: callback at a time so that SIGINT stops it; docs/nodes.md).
 CASES = (('composed', 'separate', False, 'single'), ('fused', 'fused', False, 'single'),
          ('separate', 'separate', True, 'single'),
-         ('composed, events executor', 'separate', False, 'events'))
-EXECUTOR_VARIABLE = 'YOUBOT_FDI_BENCH_EXECUTOR'  # tells a worker process its case's executor
-
-
-def make_executor(kind, context=None):
-    """``single``: rclpy's SingleThreadedExecutor (what our executables spin); ``events``:
-    rclpy.experimental.EventsExecutor (the same callbacks without a wait set rebuilt per
-    wake-up)."""
-    if kind == 'events':
-        from rclpy.experimental import EventsExecutor
-        return EventsExecutor(context=context)
-    return SingleThreadedExecutor(context=context)
+         ('composed, events executor', 'separate', False, 'events'),
+         ('separate, events executor', 'separate', True, 'events'))
 KEY_DECIMALS = 6  # samples are matched by their stamp rounded to 1 µs
 
 
@@ -238,14 +228,15 @@ def worker_main(argv=None):
     parser.add_argument('--target', default='/bench_relay/out')
     parser.add_argument('--timings', help='JSON file for {stamp: time.monotonic()} at exit')
     args = parser.parse_args(argv)
-    rclpy.init()
+    kind = executor_kind()
+    ros_init(kind)
     node = (TimedDecision() if args.role == 'decision' else
             Relay(args.index, args.source, args.target))
-    executor = make_executor(os.environ.get(EXECUTOR_VARIABLE, 'single'))
+    executor = make_executor(kind)
     executor.add_node(node)
     freeze_startup_heap()
     try:
-        executor.spin()
+        spin_until_stopped(executor, kind)
     except KeyboardInterrupt:
         pass
     finally:

@@ -1,7 +1,10 @@
 """Helpers shared by the nodes: parameters from settings dataclasses, QoS, diagnostics, main()."""
 import dataclasses
 import gc
+import os
+import signal
 import sys
+import threading
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -113,21 +116,29 @@ def diagnostics_publisher(node):
 
 
 class TimingReport:
-    """A node's input timing on /diagnostics (``<node>: timing``, level OK, at ``rate`` Hz): the
-    period between the samples it receives and their lateness, how long after its header stamp
-    each arrived (p50, p99, max; :class:`~youbot_fdi.timing.CycleTiming`); a sample later than
-    ``late_after`` [s] is counted as late."""
+    """A node's input timing on /diagnostics (``<node>: timing``, level OK, at most ``rate`` Hz,
+    from the sample callback: no timer of its own, one entity fewer in the executor's wait set):
+    the period between the samples it receives and their lateness, how long after its header
+    stamp each arrived (p50, p99, max; :class:`~youbot_fdi.timing.CycleTiming`); a sample later
+    than ``late_after`` [s] is counted as late."""
 
     def __init__(self, node, nominal_period, late_after, rate=1.0):
         from youbot_fdi.timing import CycleTiming
         self.node = node
         self.timing = CycleTiming(nominal_period, late_after=late_after)
         self.publisher = diagnostics_publisher(node)
-        node.create_timer(1.0 / rate, self.publish)
+        self.interval = 1.0 / rate
+        self._published = None
 
     def tick(self, stamp):
-        """A sample stamped ``stamp`` [s] arrived now."""
-        self.timing.tick(now_seconds(self.node), due=stamp)
+        """A sample stamped ``stamp`` [s] arrived now (publishes when the interval has passed)."""
+        now = now_seconds(self.node)
+        self.timing.tick(now, due=stamp)
+        if self._published is None:
+            self._published = now
+        elif now - self._published >= self.interval:
+            self._published = now
+            self.publish()
 
     def publish(self):
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -216,22 +227,80 @@ def freeze_startup_heap():
     gc.freeze()
 
 
+#: Environment variable choosing the executor of our node executables (:data:`EXECUTORS`).
+EXECUTOR_VARIABLE = 'YOUBOT_FDI_EXECUTOR'
+#: ``single``: rclpy's SingleThreadedExecutor (the default); ``events``: rclpy's experimental
+#: EventsExecutor, which does not rebuild a wait set from every entity on every wake-up (about
+#: half the CPU of our nodes, docs/nodes.md), opt-in: rclpy 7.1's has open crash reports.
+EXECUTORS = ('single', 'events')
+#: Longest wait for work before the events executor's loop looks at its stop flag [s].
+EVENTS_POLL = 0.1
+
+
+def executor_kind():
+    """The executor :data:`EXECUTOR_VARIABLE` asks for (``single`` when unset); ConfigError for
+    an unknown one."""
+    kind = os.environ.get(EXECUTOR_VARIABLE, 'single') or 'single'
+    if kind not in EXECUTORS:
+        msg = f'{EXECUTOR_VARIABLE}={kind!r}: choose one of {", ".join(EXECUTORS)}'
+        raise ConfigError(msg)
+    return kind
+
+
+def make_executor(kind, context=None):
+    """An executor of ``kind`` (:data:`EXECUTORS`)."""
+    if kind == 'events':
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
+
+
+def spin_until_stopped(executor, kind):
+    """Spin until SIGINT or SIGTERM (KeyboardInterrupt for ``single``, rclpy's own handling).
+    The events executor's ``spin`` does not return on SIGINT in rclpy 7.1 (it spins a core
+    instead), so it is driven one callback at a time, and our own handlers stop the loop."""
+    if kind != 'events':
+        executor.spin()
+        return
+    stop = threading.Event()
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, lambda *_: stop.set())
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=EVENTS_POLL)
+
+
+def ros_init(kind, args=None, context=None):
+    """``rclpy.init`` for an executor of ``kind``: with ``events``, rclpy installs no signal
+    handlers of its own (:func:`spin_until_stopped` does)."""
+    if kind == 'events':
+        from rclpy.signals import SignalHandlerOptions
+        rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
+    else:
+        rclpy.init(args=args, context=context)
+
+
 def spin_nodes(factories, args=None):
-    """Create nodes with ``factories`` (callables -> Node) and spin them in one executor.
+    """Create nodes with ``factories`` (callables -> Node) and spin them in one executor (of the
+    kind :data:`EXECUTOR_VARIABLE` names).
 
     The canonical Jazzy main: try/finally, KeyboardInterrupt is a normal stop,
     ExternalShutdownException exits 1, a configuration error exits 2 with a one-line reason.
     """
-    rclpy.init(args=args)
+    try:
+        kind = executor_kind()
+    except ConfigError as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    ros_init(kind, args=args)
     nodes = []
-    executor = SingleThreadedExecutor()
+    executor = make_executor(kind)
     status = 0
     try:
         for factory in factories:
             nodes.append(factory())
             executor.add_node(nodes[-1])
         freeze_startup_heap()
-        executor.spin()
+        spin_until_stopped(executor, kind)
     except KeyboardInterrupt:
         pass
     except ExternalShutdownException:

@@ -76,9 +76,10 @@ class DemoPlan:
 class DemoDriverNode(Node):
     """Publishes the scripted /cmd_vel, injects the fault, and shows wheel states and faults."""
 
-    def __init__(self, plan, base, log=None, waits_for=(), **kwargs):
+    def __init__(self, plan, base, log=None, waits_for=(), on_start=None, **kwargs):
         super().__init__('demo_driver', **kwargs)
         self.plan, self.base, self.log = plan, base, log
+        self.on_start = on_start  # called once when the drive starts
         self.waits_for = set(waits_for)  # node names that must be on the graph before driving
         self.cmd_pub = self.create_publisher(Twist, CMD_VEL, 10)
         self.create_subscription(DiagnosticArray, FAULTS, self.on_faults, LATCHED_QOS)
@@ -144,6 +145,8 @@ class DemoDriverNode(Node):
             if self.waits_for and not (self._connected() and self._flowing()):
                 return
             self.start = now_seconds(self)
+            if self.on_start is not None:
+                self.on_start()
         t = self.elapsed()
         vx, vy, wz = (float(v) for v in self.plan.script.twists([t])[0])
         _, true_speeds = self.base.wheel_state()
@@ -268,6 +271,8 @@ class DemoRun:
     reactions: list
     tracking: list
     before_drive: list = ()  # events and reactions while the nodes started, before the drive
+    #: the driver shim's cycle over the run: counters and timing (:func:`shim_figures`)
+    shim: dict = None
 
     def tracking_error(self, since):
         """RMS body-velocity tracking error from ``since`` [s] to the end: (linear [m/s],
@@ -277,6 +282,22 @@ class DemoRun:
             return None
         commanded, actual = zip(*rows)
         return tracking_rms(commanded, actual)
+
+
+def shim_figures(driver):
+    """The driver shim's cycle over the drive (from its start: the node processes' start-up left
+    out): cycles, samples, cycles later than the modules' controller timeout, incomplete cycles (a
+    module's NaN), late answers, recovered controller timeouts, and the cycle's period and
+    lateness (p50/p99/max [ms])."""
+    summary = driver.timing.summary()
+    return {'cycles': summary.cycles, 'samples': driver.samples_closed,
+            'late_cycles': summary.late_cycles,
+            'controller_timeout_ms': round(1000.0 * driver.settings.controller_timeout, 3),
+            'incomplete_cycles': int(driver.missed_cycles.sum()), 'late_answers': driver.late_answers,
+            'controller_timeouts_cleared': driver.timeout_recoveries,
+            **{key: round(1000.0 * getattr(summary, key), 3) for key in
+               ('period_p50', 'period_p99', 'period_max', 'lateness_p50', 'lateness_p99',
+                'lateness_max')}}
 
 
 def run_demo(plan, events_path=None, max_wall_time=None):
@@ -296,7 +317,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         base_node = VirtualYoubotNode(context=context, parameter_overrides=channel + [
             Parameter(name, value=value) for name, value in plan.base_overrides])
         nodes.append(base_node)
-        nodes.append(DriverShimNode(context=context, parameter_overrides=channel))
+        shim = DriverShimNode(context=context, parameter_overrides=channel)
+        nodes.append(shim)
         waits_for = ()
         bridge_module = node_module(factories[0])  # the kinematics bridge applies the reactions
         if plan.layout == 'separate':
@@ -312,7 +334,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             nodes += [factory(context=context, parameter_overrides=bridge)
                       if node_module(factory) == bridge_module else factory(context=context)
                       for factory in factories]
-        driver = DemoDriverNode(plan, base_node.base, log, waits_for, context=context)
+        driver = DemoDriverNode(plan, base_node.base, log, waits_for, context=context,
+                                on_start=shim.driver.restart_counters)
         nodes.append(driver)
         for node in nodes:
             executor.add_node(node)
@@ -332,7 +355,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         for _ in range(20):  # deliver the last fault messages
             executor.spin_once(timeout_sec=0.01)
         return DemoRun(list(driver.events), driver.injected_at, driver.start,
-                       list(driver.reactions), list(driver.tracking), list(driver.before_drive))
+                       list(driver.reactions), list(driver.tracking), list(driver.before_drive),
+                       shim_figures(shim.driver))
     finally:
         stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)

@@ -41,6 +41,7 @@ from youbot_fdi.structure.generate import wheel_suffix
 from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, ODOM, REACTIONS, WHEEL_COMMANDS
 
 NODE_NAME = 'kinematics_bridge'
+MIN_CONFIRM_PERIOD = 0.01  # [s] the confirmation timer's shortest period
 
 
 class KinematicsBridgeNode(Node):
@@ -72,6 +73,10 @@ class KinematicsBridgeNode(Node):
                 Trigger, f'{self.reactor.settings.motor_off_service}_{wheel_suffix(name)}')
                 for name in self.model.wheel_names}
             self.create_subscription(DiagnosticArray, FAULTS, self.on_faults, LATCHED_QOS)
+            # Confirms alarms when no sample comes to do it (a silent base); idle otherwise.
+            self.confirm_timer = self.create_timer(
+                max(self.reactor.settings.confirmation_time, MIN_CONFIRM_PERIOD), self.on_confirm_timer)
+            self.confirm_timer.cancel()
 
     def on_cmd_vel(self, msg):
         twist = (msg.linear.x, msg.linear.y, msg.angular.z)
@@ -97,6 +102,13 @@ class KinematicsBridgeNode(Node):
         for status in msg.status:
             reactions += self.reactor.on_event(event_from_status(status))
         self.apply(reactions)
+        if self.reactor.pending and self.confirm_timer.is_canceled():
+            self.confirm_timer.reset()
+
+    def on_confirm_timer(self):
+        self.apply(self.reactor.confirm(now_seconds(self)))
+        if not self.reactor.pending:
+            self.confirm_timer.cancel()
 
     def apply(self, reactions):
         """Reactions started or ended: published, logged, and acted on at once."""
@@ -114,13 +126,13 @@ class KinematicsBridgeNode(Node):
 
     def on_joint_states(self, msg):
         stamp = stamp_to_seconds(msg.header.stamp)
+        if self.reactor.settings.react and self.reactor.pending:  # the samples' clock, any sample
+            self.apply(self.reactor.confirm(stamp))
         sample = self.mapper.joint_sample(stamp, msg.name, msg.position, msg.velocity, msg.effort)
         if sample is None or (self._last_stamp is not None and stamp <= self._last_stamp):
             return
         dt = 0.0 if self._last_stamp is None else stamp - self._last_stamp
         self._last_stamp = stamp
-        if self.reactor.settings.react:  # alarms confirmed by now (the samples' clock)
-            self.apply(self.reactor.confirm(stamp))
         self._measured = self.reactor.readings(self.kinematics.from_driver(sample.velocity))
         if self.reactor.degraded and self._twist is not None and not self.reactor.stopped:
             # degraded driving follows the lost wheels' speeds at the sample rate, not /cmd_vel's
@@ -132,6 +144,8 @@ class KinematicsBridgeNode(Node):
             self._positions = self._positions + self.reactor.readings(raw - self._raw_positions)
         self._raw_positions = raw
         pose = self.odometry.update(self._positions, dt or 1.0)
+        if self.odom_pub.get_subscription_count() == 0:
+            return  # nobody listens: the pose is kept, the message not built
         odom = OdometryMsg()
         odom.header.stamp = seconds_to_stamp(stamp)
         odom.header.frame_id, odom.child_frame_id = self.odom_frame, self.base_frame

@@ -98,18 +98,20 @@ class ObserverNode(Node):
         if sample is None or not self.repeated.fresh_sample(sample):  # bad, or re-sent: no fresh data
             self.report_input()
             return
-        if self.fused:
+        if self.fused:  # a sample missing some wheels gives a frame with their silence only
             frame = self.generator.update(sample)
             prediction = self.generator.last_prediction
+        elif not sample.complete():  # missing data: the residual generator takes it alone
+            frame, prediction = None, None
         else:
             frame, prediction = None, self.observer.update(sample)
-        if prediction is None:
-            self.report_input()
-            return
-        self.predicted_pub.publish(joint_state(sample.stamp, self.labels,
-                                               position=prediction.to_vector(self.signs)))
+        if prediction is not None:
+            self.predicted_pub.publish(joint_state(sample.stamp, self.labels,
+                                                   position=prediction.to_vector(self.signs)))
         if frame is not None:
             self.residual_pub.publish(labelled_vector(frame.stamp, *frame.to_labelled(self.names)))
+        if prediction is None:
+            self.report_input()
 
     def report_input(self):
         """A rate-limited WARN on /diagnostics naming the input problems counted so far."""

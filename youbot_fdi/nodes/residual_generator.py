@@ -86,6 +86,11 @@ class ResidualGeneratorNode(Node):
         if sample is None:
             self.report_input()
             return
+        if not sample.complete():  # some wheels without a reading: no prediction comes for it
+            frame = self.evaluator.missing(sample)
+            self.residual_pub.publish(labelled_vector(frame.stamp, *frame.to_labelled(self.names)))
+            self.report_input()
+            return
         prediction = self.predictions.pop(stamp, None)
         if prediction is None:
             self.counters['dropped_unpaired'] += hold(self.samples, stamp, sample, self.pending_limit)

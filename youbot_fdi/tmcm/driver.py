@@ -7,8 +7,10 @@ wheel units (rad, rad/s, N·m), driver convention: every wheel's readings from t
 with the cycle's time, as one EtherCAT frame reads every slave. A sample is complete once every
 module has answered its cycle; a module that has not answered by the time the next cycle starts
 gets NaN for its entries (counted per wheel as ``missed_cycles``), never its previous value, which
-would read as a frozen encoder. An answer that comes after its cycle was closed is counted
-(``late_answers``) and dropped. ``on_sample`` is called with each sample as it is closed.
+would read as a frozen encoder (a cycle that began less than half a period before the next is
+left open for its answers, and closed once a newer cycle is complete). An answer that comes after
+its cycle was closed is counted (``late_answers``) and dropped. ``on_sample`` is called with each
+sample as it is closed.
 
 Safety: a **command watchdog** turns a command older than ``command_timeout`` into zero speed (the
 original youBot driver keeps sending the last command forever). ``motors_off`` commands 0 mA in
@@ -42,6 +44,10 @@ CLOCK_TRACKING = 0.01
 MAX_REALTIME_PRIORITY = 99  # SCHED_FIFO priorities are 1..99 on Linux
 #: Closed cycle numbers remembered, so that a late answer is told from a new cycle's first one.
 CLOSED_CYCLES_KEPT = 16
+#: A cycle still waiting for answers is closed when the next one starts at least this share of a
+#: period after it (a timer catching up fires cycles back to back: their answers are still on
+#: their way, not missing) [-].
+CLOSE_AFTER_PERIOD_SHARE = 0.5
 
 
 class CommandKind(str, enum.Enum):
@@ -264,7 +270,9 @@ class BaseDriver:
         now = self.clock() if now is None else now
         with self._lock:
             self.timing.tick(now)
-            self._close_open()
+            due = now - CLOSE_AFTER_PERIOD_SHARE / self.settings.cycle_rate
+            for slot in [s for s in self._open.values() if s.sent_at <= due]:
+                self._close(slot)
             commands = self._module_commands(now)
             self.cycle_count = (self.cycle_count + 1) % CYCLE_MODULO
             cycle = self.cycle_count
@@ -336,6 +344,14 @@ class BaseDriver:
                 self._close(older)  # an older cycle still open: its silent modules are lost
             self._close(slot)
         self._deliver()
+
+    def restart_counters(self):
+        """Start the cycle timing and the missing-answer counters afresh (e.g. when a drive
+        begins, so that start-up does not count)."""
+        with self._lock:
+            self.timing = CycleTiming(self.timing.nominal_period, self.timing.late_after)
+            self.missed_cycles[:] = 0
+            self.late_answers = self.silent_cycles = self.samples_closed = 0
 
     def close_cycles(self):
         """Close every open cycle now (its deadline has passed: e.g. a lockstep rig that has
