@@ -167,15 +167,18 @@ def test_a_recording_broken_part_way_keeps_the_events_found(recordings, tmp_path
 
 
 def test_data_gap_is_comm_loss_of_the_base(tmp_path, model):
+    """Raised the data timeout after the last sample; OK once data have flowed for heal_time."""
     path = tmp_path / 'gap'
     with RecordingWriter(path, model.wheel_names) as writer:
-        for k in range(200):
+        for k in range(250):
             stamp = 100 + 0.01 * k + (0.5 if k >= 100 else 0.0)
             writer.joint_state(stamp, [0.0] * 4, [0.0] * 4, [0.0] * 4)
     events = replay(path)
     assert [(e.level, e.wheel, e.fault) for e in events] == [('ERROR', None, 'comm_loss'),
                                                              ('OK', None, 'comm_loss')]
-    assert events[0].stamp == pytest.approx(100.99 + 0.2)
+    settings = load_settings(FdiSettings, 'fdi')
+    assert events[0].stamp == pytest.approx(100.99 + settings.data_timeout)
+    assert events[1].stamp == pytest.approx(101.49 + settings.heal_time, abs=0.011)  # its row
 
 
 def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp_path, capsys):

@@ -100,7 +100,7 @@ def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
 def test_a_wheel_without_readings_is_its_comm_loss_never_a_frozen_encoder(harness):
     """The driver shim gives NaN for a module that did not answer its cycle (issue 33): single
     missing readings are missing data; a wheel silent for the data timeout is that wheel's
-    comm_loss (not the base's, not encoder_freeze), and OK again once it answers."""
+    comm_loss (not the base's, not encoder_freeze), and OK once it has answered for heal_time."""
     harness.add(ObserverNode(context=harness.context))
     harness.add(ResidualGeneratorNode(context=harness.context))
     decision = harness.add(DecisionNode(context=harness.context))
@@ -120,7 +120,7 @@ def test_a_wheel_without_readings_is_its_comm_loss_never_a_frozen_encoder(harnes
             values[2] = math.nan
         joints.publish(message(now_seconds(decision), values=values))
 
-    harness.spin_for(4.5, every=1.0 / RATE, action=publish)
+    harness.spin_for(3.6 + FdiSettings().heal_time + 1.0, every=1.0 / RATE, action=publish)
     changes = [(e.level, e.wheel, e.fault) for e in faults if e.level in ('ERROR', 'OK')]
     assert changes[:2] == [('ERROR', 'wheel_joint_bl', 'comm_loss'), ('OK', 'wheel_joint_bl', 'comm_loss')]
     assert all(wheel == 'wheel_joint_bl' for _, wheel, _ in changes)

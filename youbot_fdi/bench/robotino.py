@@ -32,10 +32,20 @@ FAULTS = {
     'current_up': 'current x 1.8 (the wheel needs more torque)',
     'current_down': 'current x 0.5',
     'speed_zero': 'speed reading forced to 0 while commanded',
+    'jam': 'the wheel blocked: position held, speed 0, current rising to the drive limit',
+    'ramp': 'current ramping x1 -> x2 over RAMP_TIME (a bearing going bad), then x2',
+    'intermittent': 'every reading held for 3-5 samples every INTERMITTENT_PERIOD (a flaky module)',
 }
+#: Faults that begin at once (the issue's delay targets are about these).
+ABRUPT = ('encoder_freeze', 'current_up', 'current_down', 'speed_zero', 'jam')
 CURRENT_SCALE = {'current_up': 1.8, 'current_down': 0.5}
 EXPECTED_KIND = {'encoder_freeze': 'encoder_freeze', 'current_up': 'friction',
-                 'current_down': 'torque_loss', 'speed_zero': 'encoder_freeze'}
+                 'current_down': 'torque_loss', 'speed_zero': 'encoder_freeze', 'jam': 'stuck',
+                 'ramp': 'friction', 'intermittent': None}
+RAMP_TIME = 4.0  # [s] x1 -> x2
+JAM_RISE = 0.1  # [s] the blocked wheel's current reaches the limit in this time
+INTERMITTENT_PERIOD = 0.5  # [s] between held stretches
+INTERMITTENT_HOLDS = (3, 4, 5)  # samples held, in turn
 STAMPINGS = ('with', 'before', 'after', 'bag_time')
 
 
@@ -88,15 +98,34 @@ def read_run(path):
                        wheels('vel'), np.abs(wheels('cur')))
 
 
-def inject(run, fault, wheel, onset):
-    """``run`` with ``fault`` (a key of :data:`FAULTS`) on wheel index ``wheel`` from row ``onset``."""
+def inject(run, fault, wheel, onset, max_current=None):
+    """``run`` with ``fault`` (a key of :data:`FAULTS`) on wheel index ``wheel`` from row ``onset``
+    (``max_current`` [A, motor]: the drive's limit a jammed wheel's current rises to)."""
     ticks, speed, current = run.ticks.copy(), run.speed.copy(), run.current.copy()
+    since = run.time[onset:] - run.time[onset]  # [s]
     if fault == 'encoder_freeze':
         ticks[onset:, wheel] = ticks[onset, wheel]
     elif fault == 'speed_zero':
         speed[onset:, wheel] = 0.0
     elif fault in CURRENT_SCALE:
         current[onset:, wheel] *= CURRENT_SCALE[fault]
+    elif fault == 'ramp':
+        current[onset:, wheel] *= 1.0 + np.clip(since / RAMP_TIME, 0.0, 1.0)
+    elif fault == 'jam':
+        if max_current is None:
+            msg = 'a jam needs the drive\'s max_current'
+            raise ValueError(msg)
+        ticks[onset:, wheel] = ticks[onset, wheel]
+        speed[onset:, wheel] = 0.0
+        start = current[onset, wheel]
+        current[onset:, wheel] = start + (max_current - start) * np.clip(since / JAM_RISE, 0.0, 1.0)
+    elif fault == 'intermittent':
+        dt = float(np.median(np.diff(run.time)))
+        period = max(1, int(round(INTERMITTENT_PERIOD / dt)))
+        for k, first in enumerate(range(onset, len(run) - 1, period)):
+            last = min(len(run), first + 1 + INTERMITTENT_HOLDS[k % len(INTERMITTENT_HOLDS)])
+            for array in (ticks, speed, current):
+                array[first + 1:last, wheel] = array[first, wheel]
     else:
         msg = f'unknown fault {fault!r}; known: {sorted(FAULTS)}'
         raise ValueError(msg)
@@ -145,94 +174,6 @@ def write_recording(runs, path, model, stamping='with', gap=1.0, storage='sqlite
     return starts
 
 
-# ---------------------------------------------------------------------- the real-data suite
-#: Calibration: the green runs with NN % CALIBRATION_EVERY == 0 (every 90° of direction at
-#: each speed), concatenated into one nominal recording, as a user's calibration drive would be.
-CALIBRATION_EVERY = 18
-FAULT_RUNS = 10  # runs per injected fault
-ONSET_SHARE = 0.5  # the fault begins at this share of the run
+# ---------------------------------------------------------------------- injection sites
+ONSET_SHARE = 0.5  # a fault begins at this share of the run
 MOVING_SHARE = 0.5  # faults go on wheels set to at least this share of the run's fastest wheel
-
-
-def _run_number(path):
-    return int(Path(path).stem[3:])
-
-
-def _runs(folder, keep):
-    return [read_run(p) for p in sorted(folder.glob('exp*.csv'), key=_run_number)
-            if keep(_run_number(p))]
-
-
-def suite_cases(root):
-    """(calibration runs, [(case name, runs, fault, wheel index, onset row)]) of the real-data
-    suite: held-out green runs and every gray run (another floor covering), the real runs that
-    cross coverings and green runs that continue on gray half-way, and faults injected."""
-    green = _runs(root / SURFACES[0], lambda nn: True)
-    gray = _runs(root / SURFACES[1], lambda nn: True)
-    calibration = [r for r in green if _run_number(r.name) % CALIBRATION_EVERY == 0]
-    held_out = [r for r in green if _run_number(r.name) % CALIBRATION_EVERY]
-    cases = [(f'green/{r.name}', [r], None, None, None) for r in held_out]
-    cases += [(f'gray/{r.name}', [r], None, None, None) for r in gray]
-    crossing_dir = root / IDENTIFICATION_DIR
-    cases += [(f'crossing/{name}', [read_run(crossing_dir / name)], None, None, None)
-              for name in CROSSINGS if (crossing_dir / name).is_file()]
-    by_name = {r.name: r for r in gray}
-    for run in green:
-        other = by_name.get(run.name)
-        if other is not None:
-            at = min(len(run), len(other)) // 2
-            cases.append((f'spliced/{run.name}', [splice(run, other, at)], None, None, None))
-    pool = held_out[::2] + gray[1::2]
-    for k, fault in enumerate(FAULTS):
-        for j in range(FAULT_RUNS):
-            run = pool[(k * FAULT_RUNS + j) * 7 % len(pool)]
-            onset = int(ONSET_SHARE * len(run))
-            speed = np.abs(run.set_speed[onset])
-            moving = np.flatnonzero(speed >= MOVING_SHARE * speed.max())
-            wheel = int(moving[j % len(moving)])
-            cases.append((f'{fault}/{run.name}/wheel{wheel + 1}', [inject(run, fault, wheel, onset)],
-                          fault, wheel, onset))
-    return calibration, cases
-
-
-def _replay_case(job):
-    """Convert one case, replay it with each variant's parameters; {variant: score dict}
-    (worker process)."""
-    from youbot_fdi.bench.scoring import Case, replay_scored
-    from youbot_fdi.model.profile import load_model
-    name, runs, fault, wheel, onset, workdir, params = job
-    model = load_model(PROFILE)
-    path = Path(workdir) / name.replace('/', '_')
-    start = write_recording(runs, path, model)[0]
-    run = runs[0]
-    case = Case(name, str(path), float(run.time[-1] - run.time[0]), fault,
-                None if wheel is None else model.wheel_names[wheel],
-                math.nan if onset is None else start + float(run.time[onset] - run.time[0]),
-                EXPECTED_KIND.get(fault), start)
-    return replay_scored(case, params)
-
-
-def run_suite(workdir, progress=print, workers=2, root=None):
-    """The real-data suite: identify on the green calibration runs, replay every case with the
-    learned and the physics-only parameters. Returns (identification summary, {variant: result
-    dicts}, residual spread by variant), or None when the data are absent."""
-    from concurrent.futures import ProcessPoolExecutor
-    from youbot_fdi.bench.calibration import calibrate, residual_spread, VARIANTS
-    from youbot_fdi.model.profile import load_model
-    root = root or data_dir()
-    if root is None:
-        return None
-    workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
-    calibration, cases = suite_cases(root)
-    model = load_model(PROFILE)
-    calibration_path = workdir / 'robotino_calibration'
-    write_recording(calibration, calibration_path, model)
-    progress(f'real data: identify on {len(calibration)} green runs, then {len(cases)} replays ...')
-    params, result = calibrate(calibration_path, model, workdir / 'robotino_params')
-    jobs = [(*case, str(workdir), params) for case in cases]
-    with ProcessPoolExecutor(workers) as pool:
-        scored = list(pool.map(_replay_case, jobs, chunksize=4))
-    summary = (f'identified on {len(calibration)} green runs ({result.info["samples"]} samples): '
-               'bound coverage ' + ', '.join(f'{f} {c:.1%}' for f, c in result.coverage.items()))
-    return summary, {v: [r[v] for r in scored] for v in VARIANTS}, residual_spread(result)

@@ -36,11 +36,16 @@ def add_parser(subparsers):
     parser.add_argument('--modes', default='velocity,effort',
                         help='control modes of the fault benchmark, comma-separated '
                              '(default: velocity,effort)')
-    parser.add_argument('--suites', default='simulated,independent,real',
-                        help='fault benchmark suites, comma-separated: simulated (the project\'s '
+    parser.add_argument('--suites', default='simulated,independent,real,randomized',
+                        help="fault benchmark suites, comma-separated: simulated (the project's "
                              'virtual base), independent (an independently written simulator), '
-                             'real (the Robotino recordings in shared/real_data/robotino, or '
-                             '$YOUBOT_FDI_ROBOTINO_DATA; skipped when absent) (default: all)')
+                             'real (cross-validation on the Robotino recordings in '
+                             'shared/real_data/robotino, or $YOUBOT_FDI_ROBOTINO_DATA; skipped when '
+                             "absent), randomized (hundreds of plants written apart from the FDI's "
+                             'model, each calibrated on its own gentle drive) (default: all)')
+    parser.add_argument('--plants', type=int, default=200,
+                        help='plants of the randomized suite (default: 200: 20 h of fault-free '
+                             'driving)')
     parser.set_defaults(run=run)
 
 
@@ -57,13 +62,13 @@ def run(args):
     return 0
 
 
-SUITES = ('simulated', 'independent', 'real')
+SUITES = ('simulated', 'independent', 'real', 'randomized')
 
 
 def run_faults(args, progress):
     """The fault benchmark's suites, each printed as it finishes, side by side in one format."""
     import tempfile
-    from youbot_fdi.bench import independent, robotino
+    from youbot_fdi.bench import crossval, independent, robotino
     from youbot_fdi.bench.calibration import VARIANTS
     from youbot_fdi.bench.scoring import ablation, summarise
     from youbot_fdi.bench.simulated import MODES, run_fault_benchmark, summarise as summarise_simulated
@@ -86,14 +91,18 @@ def run_faults(args, progress):
                                    results[VARIANTS[0]]), flush=True)
             rows += [('independent', v, results[v], spread) for v in VARIANTS]
         if 'real' in suites:
-            found = robotino.run_suite(workdir, progress, args.workers)
-            if found is None:
+            folds = crossval.run_crossval(workdir, progress, args.workers)
+            if folds is None:
                 print(f'\nReal data (Robotino): skipped, no data at {robotino.DEFAULT_DATA} '
                       f'(set ${robotino.ENV_DATA})', flush=True)
             else:
-                line, results, spread = found
-                print('\n' + summarise(f'Real data, Festo Robotino ({line})', results[VARIANTS[0]]),
-                      flush=True)
-                rows += [('real', v, results[v], spread) for v in VARIANTS]
+                print('\n' + crossval.summarise_folds(folds, VARIANTS[0]), flush=True)
+                rows += [('real', v, [r for f in folds for r in f.results[v]],
+                          folds[0].calibration['spread']) for v in VARIANTS]
+        if 'randomized' in suites:
+            from youbot_fdi.bench import randomized
+            plants, scored = randomized.run_suite(workdir, progress, args.workers, args.seed,
+                                                  args.plants)
+            print('\n' + randomized.summarise(plants, scored), flush=True)
     print('\n' + ablation(rows), flush=True)
     return 0

@@ -44,6 +44,7 @@ import numpy as np
 
 from youbot_fdi.faults import FaultKind, LOAD_CHANGE, UNSEEN_OPERATING_POINT
 from youbot_fdi.fdi.learned import masked_wheels
+from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
 from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum, last_true_value
 from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.structure.generate import wheel_suffix
@@ -167,6 +168,8 @@ class DecisionMaker:
         self._row = -1
         self._isolation_cache = {}
         self._used_scores = False  # the last diagnosis depended on the scores, not only the alarms
+        #: what is published: the raw states above as episodes (youbot_fdi/fdi/lifecycle.py)
+        self.lifecycle = EventLifecycle(LifecycleSettings.of(settings))
 
     def _signatures(self, residual_data):
         """fault -> (kind, wheel index, set of torque-family wheel indices, observer indices)."""
@@ -561,6 +564,15 @@ class DecisionMaker:
 
     def update(self, frame):
         """Process one residual frame; returns the fault events it causes (usually none)."""
+        return self.lifecycle.feed(self._update(frame), [frame.stamp])
+
+    def update_batch(self, batch):
+        """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events (those
+        :meth:`update` would give frame by frame)."""
+        return self.lifecycle.feed(self._update_batch(batch), batch.stamp)
+
+    def _update(self, frame):
+        """The raw events of one residual frame (before the lifecycle)."""
         z = frame.scores()
         alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None],
                              [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None],
@@ -576,10 +588,10 @@ class DecisionMaker:
             return events
         return events + self._step(frame, z)
 
-    def update_batch(self, batch):
-        """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events.
+    def _update_batch(self, batch):
+        """The raw events of a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`.
 
-        The same as :meth:`update` frame by frame. The alarms are computed for the whole batch.
+        The same as :meth:`_update` frame by frame. The alarms are computed for the whole batch.
         Frames are examined one by one only where something can change: not while every component
         is OK and no alarm can give a diagnosis, and not while a row repeats the alarms and frozen
         flags of a row that changed nothing (unless the diagnosis depended on the scores, or a
@@ -703,34 +715,24 @@ class DecisionMaker:
         event = self._transition(BASE, ERROR, FaultKind.COMM_LOSS.value,
                                  last_stamp + self.settings.data_timeout, (),
                                  f'no /joint_states for more than {self.settings.data_timeout:g} s')
-        return [event] if event is not None else []
+        return self.lifecycle.immediate(event) if event is not None else []
 
     def data_resumed(self, stamp):
         """Fresh data after a stall: the base's comm_loss clears."""
         if self.components[BASE].level == OK:
             return []
         event = self._transition(BASE, OK, FaultKind.COMM_LOSS.value, stamp, (), 'data resumed')
-        return [event] if event is not None else []
+        return self.lifecycle.feed([event], [stamp]) if event is not None else []
 
     def reset(self, stamp, detail='reset after a repair'):
         """Clear every latched fault (after a repair): the evidence, the alarms and the load
         condition start afresh; one OK event per component that was not OK, stamped ``stamp``
         [s]. Returns (events, what was cleared as 'wheel: fault' strings)."""
-        cleared, events = [], []
-        for key, component in self.components.items():
-            if component.level != OK:
-                cleared.append(f'{key or BASE_NAME}: {component.fault}')
-                events.append(FaultEvent(stamp, OK, key, component.fault, (), detail))
-                self.components[key] = _Component()
-        if self.load_level != OK:
-            cleared.append(f'{BASE_NAME}: {LOAD_CHANGE}')
-            events.append(FaultEvent(stamp, OK, BASE, LOAD_CHANGE, ('load_factor',), detail))
-            self.load_level = OK
-        if self.range_level != OK:
-            cleared.append(f'{BASE_NAME}: {UNSEEN_OPERATING_POINT}')
-            events.append(FaultEvent(stamp, OK, BASE, UNSEEN_OPERATING_POINT,
-                                     ('outside_calibration',), detail))
-            self.range_level = OK
+        for key in self.components:
+            self.components[key] = _Component()
+        self.load_level = self.range_level = OK
+        events = self.lifecycle.reset(stamp, detail)
+        cleared = [f'{e.wheel or BASE_NAME}: {e.fault}' for e in events]
         self._outside_stamp = NEVER
         self._evidence[:] = 0.0
         self._shift[:] = 0.0
@@ -744,5 +746,5 @@ class DecisionMaker:
         return events, cleared
 
     def states(self):
-        """Component -> (level, fault)."""
-        return {k: (c.level, c.fault) for k, c in self.components.items()}
+        """Component -> (level, fault) as published (the base's own faults, not its conditions)."""
+        return {k: self.lifecycle.shown((k, FAULT_CHANNEL)) for k in self.components}

@@ -87,6 +87,11 @@ class FdiSettings:
     bound_quantile: float = 0.99
     bound_margin: float = 1.25
     classification_window: float = 0.5  # data used to name the fault type [s]
+    # the event lifecycle (youbot_fdi/fdi/lifecycle.py): an alarm is published once it stood
+    # confirm_time, OK once it has been gone heal_time; no two events of a component within dwell
+    confirm_time: float = 0.0  # [s]
+    heal_time: float = 1.0  # [s]
+    dwell: float = 0.5  # [s]
 
     @property
     def data_timeout(self):

@@ -1,0 +1,286 @@
+"""The randomized fault suite (``youbot-fdi bench --faults --suites randomized``).
+
+Hundreds of plants (:mod:`youbot_fdi.bench.plant`, written apart from the FDI's model code) drawn
+from wide ranges: mass, inertias, viscous, Coulomb and direction-dependent friction, roller and
+rolling resistance, traction, the true torque constant, firmware gains, current limits that
+saturate, actuation delay 0-5 ms, velocity or current mode, 20-500 Hz sampling with up to
++-30 % jitter and 10 % of samples lost, commands with every sample or sparse (10-20 Hz, some only
+on change), quantised or continuous encoders, speed readings differentiated from the encoder,
+lagging or noisy.
+
+Each plant is calibrated as a user would: ``identify`` on its own 60 s nominal drive, gentle and
+at moderate speed, on one floor, without payload. It is then judged on drives wider than that:
+aggressive and gentle, faster, with starts and stops, on floors x0.5 to x3, with payloads from
+-40 % to +60 % of its mass, put on or taken off while it stands, and on faults injected mid-drive
+at their default and a smaller magnitude. Nothing is tuned per plant or per suite.
+"""
+from dataclasses import dataclass
+import math
+from pathlib import Path
+
+import numpy as np
+
+from youbot_fdi.bench import plant
+
+PLANTS = 200
+CALIBRATION_SECONDS = 60.0
+RUN_SECONDS = 60.0  # each fault-free judged drive [s]
+FAULT_FREE_RUNS = 6  # per plant: 200 x 6 x 60 s = 20 h
+FAULT_RUN_SECONDS = 20.0
+FAULT_WINDOW = (8.0, 12.0)  # a fault begins in this stretch of its run [s]
+#: (fault, magnitude, label): every contract fault at its default magnitude, two at a smaller one.
+FAULTS = (('stuck', 1.0, 'stuck'), ('torque_loss', 0.3, 'torque_loss x0.3'),
+          ('torque_loss', 0.6, 'torque_loss x0.6'), ('friction', 6.0, 'friction x6'),
+          ('friction', 3.0, 'friction x3'), ('runaway', 1.0, 'runaway'),
+          ('encoder_freeze', 1.0, 'encoder_freeze'), ('comm_loss', 1.0, 'comm_loss'))
+#: Faults at their default magnitude (the issue's detection targets are about these).
+DEFAULT_MAGNITUDE = ('stuck', 'torque_loss x0.3', 'friction x6', 'runaway', 'encoder_freeze',
+                     'comm_loss')
+RATES = (20.0, 25.0, 50.0, 100.0, 125.0, 200.0, 250.0, 500.0)  # [Hz]
+MAX_WHEEL_SPEED = 12.0  # [rad/s] no drive asks a wheel for more
+START_STAMP = 1_760_000_000.0  # [s]
+PROFILE = 'youbot'
+
+
+# ---------------------------------------------------------------------- plants and drives
+def draw_plants(count, rng):
+    """``count`` plants from the suite's ranges (:class:`~youbot_fdi.bench.plant.PlantParameters`)."""
+    def uniform(low, high, shape=None):
+        return rng.uniform(low, high, count if shape is None else (count, shape))
+
+    def each_wheel(base, low, high):
+        return base[:, None] * uniform(low, high, plant.WHEELS)
+
+    mass = 23.6 * uniform(0.8, 1.25)
+    sparse = rng.random(count) < 0.5
+    return plant.PlantParameters(
+        mass=mass, yaw_inertia=mass * (0.58 ** 2 + 0.38 ** 2) / 12.0 * uniform(0.7, 1.4),
+        wheel_inertia=0.0095 * uniform(0.6, 1.5),
+        viscous=each_wheel(0.035 * uniform(0.3, 2.0), 0.8, 1.25),
+        coulomb=each_wheel(uniform(0.0, 0.08), 0.7, 1.3),
+        asymmetry=uniform(-0.3, 0.3, plant.WHEELS),
+        traction=uniform(0.4, 0.9), roller_resistance=uniform(0.005, 0.03),
+        rolling_resistance=uniform(0.0002, 0.001), torque_scale=uniform(0.9, 1.1),
+        kp=0.88 * np.exp(uniform(math.log(0.5), math.log(2.0))),
+        ki=8.8 * np.exp(uniform(math.log(0.3), math.log(2.0))),
+        current_limit=uniform(1.5, 3.564), current_lag=uniform(0.0002, 0.002),
+        delay=uniform(0.0, 0.005), current_mode=rng.random(count) < 0.25,
+        sample_rate=rng.choice(RATES, count),
+        jitter=np.where(rng.random(count) < 0.5, uniform(0.0, 0.3), 0.02),
+        drop=np.where(rng.random(count) < 0.3, 0.1, 0.0),
+        command_rate=np.where(sparse, uniform(10.0, 20.0), 0.0),
+        on_change=sparse & (rng.random(count) < 0.3),
+        quantised=rng.random(count) < 0.7, speed_reading=rng.integers(0, 3, count),
+        speed_lag=uniform(0.005, 0.04), speed_noise=uniform(0.005, 0.05),
+        current_noise=uniform(0.002, 0.02))
+
+
+def random_knots(rng, duration, top_speed, top_turn, acceleration, turn_acceleration,
+                 stop_share=0.25):
+    """Knots (times [s], twists (m, 3)) of a drive of random segments (1-4 s; a stop now and
+    then), ramped at the given limits [m/s², rad/s²] (inf: steps), within MAX_WHEEL_SPEED."""
+    times, twists = [0.0], [np.zeros(3)]
+    t, current = 0.0, np.zeros(3)
+    while t < duration - 1.0:
+        hold = rng.uniform(1.0, 4.0)
+        if rng.random() < stop_share:
+            goal = np.zeros(3)
+        else:
+            heading = rng.uniform(-math.pi, math.pi)
+            goal = np.array([math.cos(heading), math.sin(heading), 0.0]) * rng.uniform(0.2, 1.0) * top_speed
+            goal[2] = rng.uniform(-1.0, 1.0) * top_turn * (rng.random() < 0.6)
+            fastest = np.abs(plant.inverse_kinematics(goal)).max()
+            if fastest > MAX_WHEEL_SPEED:
+                goal *= MAX_WHEEL_SPEED / fastest
+        change = goal - current
+        ramp = max(np.hypot(*change[:2]) / acceleration, abs(change[2]) / turn_acceleration)
+        ramp = min(ramp, hold)
+        if ramp > 0.0:
+            times.append(t + ramp)
+            twists.append(goal.copy())
+        t += hold
+        times.append(min(t, duration))
+        twists.append(goal.copy())
+        current = goal
+    times += [times[-1] + 0.5, duration + 1.0]
+    twists += [np.zeros(3), np.zeros(3)]
+    order = np.maximum.accumulate(np.array(times))
+    return order, np.array(twists)
+
+
+def calibration_drive(rng):
+    """The user's nominal drive: gentle, moderate speeds, one floor, no payload."""
+    knots, twists = random_knots(rng, CALIBRATION_SECONDS, 0.25, 0.6, 0.5, 1.0, stop_share=0.15)
+    return plant.Drive(knots, twists, CALIBRATION_SECONDS)
+
+
+def judged_drive(rng, mass, duration=RUN_SECONDS, fault=None, wheel=0, magnitude=1.0):
+    """A drive wider than calibration: faster, aggressive or gentle, starts and stops, another
+    floor (maybe changing), a payload (maybe put on or off while standing); a fault if given."""
+    aggressive = rng.random() < 0.5
+    acceleration, turn = (rng.uniform(2.0, 6.0), rng.uniform(3.0, 8.0)) if aggressive else (0.6, 1.2)
+    knots, twists = random_knots(rng, duration, 0.45, 1.2, acceleration, turn)
+    floor = float(np.exp(rng.uniform(math.log(0.5), math.log(3.0)))) if rng.random() < 0.6 else 1.0
+    floor_after, floor_time = floor, math.inf
+    if rng.random() < 0.4:
+        floor_after = float(np.exp(rng.uniform(math.log(0.5), math.log(3.0))))
+        floor_time = float(rng.uniform(0.3, 0.8) * duration)
+    payload = float(rng.uniform(-0.4, 0.6) * mass) if rng.random() < 0.5 else 0.0
+    payload_after, payload_time = payload, math.inf
+    if rng.random() < 0.4:  # put on or taken off while the base stands
+        resting = _rest_times(knots, twists, duration)
+        if len(resting):
+            payload_after = float(rng.uniform(-0.4, 0.6) * mass)
+            payload_time = float(rng.choice(resting))
+    offset = tuple(rng.uniform(-0.1, 0.1, 2))
+    fault_time = float(rng.uniform(*FAULT_WINDOW)) if fault else math.inf
+    return plant.Drive(knots, twists, duration, floor, floor_after, floor_time, payload,
+                       payload_after, payload_time, offset, fault, wheel, fault_time, magnitude)
+
+
+def _rest_times(knots, twists, duration):
+    """Middles of the stretches in which the base is commanded to stand [s]."""
+    still = np.all(np.abs(twists) < 1e-9, axis=1)
+    middles = [0.5 * (knots[k] + knots[k + 1]) for k in range(len(knots) - 1)
+               if still[k] and still[k + 1] and knots[k + 1] - knots[k] > 0.5 and knots[k + 1] < duration]
+    return np.array(middles)
+
+
+# ---------------------------------------------------------------------- the runs
+@dataclass(frozen=True)
+class Run:
+    """One recording of the suite: which plant, what it is for, what was injected."""
+
+    plant: int
+    kind: str  # 'calibration', 'fault_free' or 'fault'
+    label: str  # the fault's label (FAULTS), or ''
+    path: str
+    duration: float  # [s]
+    fault: object = None
+    wheel: object = None  # joint name
+    onset: float = math.nan  # header stamp from which the fault can be seen [s]
+    start: float = START_STAMP
+    injected: float = math.nan  # header stamp of the injection (a runaway shows later) [s]
+
+
+def write(recording, path, names, storage='sqlite3'):
+    """A plant's :class:`~youbot_fdi.bench.plant.Recording` as a rosbag2 recording; the start
+    stamp [s]."""
+    from youbot_fdi.bag.writer import RecordingWriter
+    kind = 'effort' if recording.current_mode else 'velocity'
+    commands = iter(zip(recording.command_stamp, recording.command))
+    pending = next(commands, None)
+    with RecordingWriter(path, names, storage) as writer:
+        for k, stamp in enumerate(recording.stamp):
+            while pending is not None and pending[0] <= stamp:
+                writer.wheel_command(START_STAMP + pending[0], kind, pending[1])
+                pending = next(commands, None)
+            writer.joint_state(START_STAMP + stamp, recording.position[k], recording.velocity[k],
+                               recording.effort[k])
+    return START_STAMP
+
+
+def _write(job):
+    from youbot_fdi.model.profile import load_model
+    recording, path = job
+    write(recording, path, load_model(PROFILE).wheel_names)
+    return path
+
+
+def _calibrate(job):
+    from youbot_fdi.bench.calibration import calibrate
+    from youbot_fdi.model.profile import load_model
+    index, path, directory = job
+    params, _ = calibrate(path, load_model(PROFILE), Path(directory) / f'params{index:03d}')
+    return index, params
+
+
+def _replay(job):
+    from youbot_fdi.bench.scoring import Case, replay_scored
+    run, params = job
+    case = Case(f'plant{run.plant:03d}/{run.label or run.kind}', run.path, run.duration, run.label or None,
+                run.wheel, run.onset, run.fault, run.start, run.injected)
+    scored = replay_scored(case, {'learned': params['learned']})['learned']
+    return run, {**scored, 'fault': run.label or None, 'spread': None}
+
+
+def run_suite(workdir, progress=print, workers=2, seed=0, plants=PLANTS,
+              fault_free_runs=FAULT_FREE_RUNS):
+    """Draw, simulate, calibrate and replay the suite; returns (plant parameters, [(Run, result
+    dict)])."""
+    from concurrent.futures import ProcessPoolExecutor
+    from youbot_fdi.model.profile import load_model
+    rng = np.random.default_rng(seed)
+    workdir = Path(workdir) / 'randomized'
+    workdir.mkdir(parents=True, exist_ok=True)
+    names = load_model(PROFILE).wheel_names
+    params = draw_plants(plants, rng)
+    runs = []
+    slots = [('calibration', None)] + [('fault_free', None)] * fault_free_runs + [('fault', f) for f in FAULTS]
+    with ProcessPoolExecutor(workers) as pool:
+        for slot, (kind, fault) in enumerate(slots):
+            progress(f'randomized: simulating {kind} {fault[2] if fault else ""} drives of {plants} '
+                     f'plants ({slot + 1}/{len(slots)}) ...')
+            wheels = rng.integers(0, plant.WHEELS, plants)
+            if kind == 'calibration':
+                drives = [calibration_drive(rng) for _ in range(plants)]
+            elif kind == 'fault_free':
+                drives = [judged_drive(rng, params.mass[p]) for p in range(plants)]
+            else:
+                drives = [judged_drive(rng, params.mass[p], FAULT_RUN_SECONDS, fault[0], int(wheels[p]),
+                                       fault[1]) for p in range(plants)]
+            recordings = plant.simulate(params, drives, seed=seed * 1000 + slot)
+            paths = [str(workdir / f'plant{p:03d}_{slot}') for p in range(plants)]
+            list(pool.map(_write, zip(recordings, paths), chunksize=4))
+            for p, (drive, recording) in enumerate(zip(drives, recordings)):
+                runs.append(Run(p, kind, fault[2] if fault else '', paths[p], drive.duration,
+                                fault[0] if fault else None, names[drive.wheel] if fault else None,
+                                START_STAMP + recording.fault_visible if fault else math.nan,
+                                injected=START_STAMP + drive.fault_time if fault else math.nan))
+        calibration = [r for r in runs if r.kind == 'calibration']
+        progress(f'randomized: identify on each plant\'s nominal drive ({plants}) ...')
+        identified = dict(pool.map(_calibrate, [(r.plant, r.path, str(workdir)) for r in calibration]))
+        judged = [r for r in runs if r.kind != 'calibration']
+        progress(f'randomized: {len(judged)} replays ...')
+        scored = list(pool.map(_replay, [(r, identified[r.plant]) for r in judged], chunksize=8))
+    return params, scored
+
+
+# ---------------------------------------------------------------------- the printed report
+def summarise(params, scored):
+    """The suite's report: hours, runs and hours with an alarm; detection per fault and magnitude."""
+    from youbot_fdi.bench.scoring import summarise as suite_table
+    results = [r for _, r in scored]
+    fault_free = [(run, r) for run, r in scored if run.kind == 'fault_free']
+    hours = sum(r['fault_free_seconds'] for r in results) / 3600.0
+    alarmed = [(run, r) for run, r in scored if r['false_alarms']]
+    alarmed_hours = sum(run.duration for run, _ in alarmed) / 3600.0
+    lines = [f'Randomized suite: {len(params)} plants (plant.py, not the FDI\'s model), each calibrated '
+             f'on its own {CALIBRATION_SECONDS:g} s gentle drive',
+             f'  driven fault-free: {hours:.1f} h ({len(fault_free)} fault-free runs of '
+             f'{RUN_SECONDS:g} s and the fault runs up to their fault); runs with an alarm: '
+             f'{len(alarmed)} ({alarmed_hours:.2f} h of driving); false alarms: '
+             f'{sum(r["false_alarms"] for r in results)}']
+    if alarmed:
+        lines.append('  ' + describe_alarms(params, alarmed))
+    lines.append('')
+    lines.append(suite_table('Randomized suite, per fault and magnitude', results))
+    default = [r for r in results if r['fault'] in DEFAULT_MAGNITUDE]
+    delays = np.array([r['delay'] for r in default if r['detected'] and r['isolated']])
+    lines.append(f'  default magnitude: {sum(r["detected"] and r["isolated"] for r in default)}/'
+                 f'{len(default)} detected and isolated; median '
+                 f'{1000 * np.median(delays) if len(delays) else math.nan:.0f} ms, p90 '
+                 f'{1000 * np.percentile(delays, 90) if len(delays) else math.nan:.0f} ms')
+    return '\n'.join(lines)
+
+
+def describe_alarms(params, alarmed):
+    """Where the false alarms were: the alarm kinds and the plants' modes, rates and readings."""
+    kinds = {}
+    for _, r in alarmed:
+        for fault in r['false_alarm_faults']:
+            kinds[fault.split(':')[1]] = kinds.get(fault.split(':')[1], 0) + 1
+    modes = {'current' if params.current_mode[run.plant] else 'velocity' for run, _ in alarmed}
+    rates = sorted({int(params.sample_rate[run.plant]) for run, _ in alarmed})
+    return (f'alarm kinds {kinds}; modes {sorted(modes)}; sample rates {rates} Hz; plants '
+            f'{sorted({run.plant for run, _ in alarmed})[:20]}')
