@@ -342,7 +342,7 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     block, from any state it was left in, equal the one-row recursions; so do the rows in which the
     base breaks away from rest (no torque evidence, the level starts afresh)."""
     from youbot_fdi.fdi.settings import FdiSettings
-    settings_ = FdiSettings(release=5, shared_window=0.5, shift_time_constant=0.3)
+    settings_ = FdiSettings(release_time=0.05, shared_window=0.5, shift_time_constant=0.3)
     rng = np.random.default_rng(seed)
     shape = (len(FAMILIES), 4)
     batched = DecisionMaker(model.wheel_names, settings_, load_residual_data())
@@ -352,7 +352,7 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     batched._typical_bound.value = np.log(rng.uniform(0.05, 0.2, size=4))
     batched._typical_bound.weight = rng.choice([0.0, 0.5, 1.0], size=4)
     batched._last_stamp = rng.choice([np.nan, -0.1])
-    batched._below = rng.integers(0, 6, size=shape)
+    batched._below = rng.integers(0, 6, size=shape) * settings_.evidence_interval
     batched.alarm = rng.random(shape) < 0.5
     batched._rise = np.where(batched._evidence >= 1.5, -rng.random(shape), batched._rise)
     evidence, below, alarm = batched._evidence.copy(), batched._below.copy(), batched.alarm.copy()
@@ -364,7 +364,7 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     torque[rng.random((rows, 4)) < 0.05] = np.nan  # no effort recorded
     bound = rng.uniform(0.05, 0.2, size=(rows, 4)) * np.where(rng.random((rows, 4)) < 0.1, 20.0, 1.0)
     excited = rng.random((rows, 4)) < 0.7
-    stamps = np.cumsum(rng.uniform(0.01, 0.4, rows))
+    stamps = np.cumsum(rng.uniform(0.002, 0.4, rows))  # some closer than evidence_interval
     breaking = rng.random(rows) < 0.15
     got = batched._alarms(z, excited, stamps, torque, bound, breaking)
     s = settings_
@@ -373,6 +373,8 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     for k in range(rows):
         was_up = np.maximum(evidence, np.vstack([np.maximum(shift.max(axis=0) * scale, evidence[0]),
                                                  evidence[1:]])) >= level_share
+        # the row's evidence weight: the time it stands for, at most one interval
+        row_weight = 1.0 if np.isnan(last) else min(1.0, (stamps[k] - last) / s.evidence_interval)
         # the torque shift, against the level before this row
         present = np.isfinite(torque[k])
         judged_now = present & ~breaking[k]
@@ -397,10 +399,10 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
                          * (inside - level), level)
         last = stamps[k]
         x = np.clip(x, -s.evidence_cap, s.evidence_cap)
-        shift = np.clip(shift + np.stack([x, -x]) - s.shift_drift, 0.0, 2.0 * s.shift_threshold)
+        shift = np.clip(shift + row_weight * (np.stack([x, -x]) - s.shift_drift), 0.0, 2.0 * s.shift_threshold)
         scores = z[k].copy()
         scores[0] = 0.0 if breaking[k] else scores[0]  # no torque evidence while breaking away
-        evidence = np.maximum(0.0, evidence + np.minimum(scores, s.evidence_cap) - s.evidence_drift)
+        evidence = np.maximum(0.0, evidence + row_weight * (np.minimum(scores, s.evidence_cap) - s.evidence_drift))
         judged = evidence.copy()
         judged[0] = np.maximum(judged[0], shift.max(axis=0) * scale)
         up = judged >= level_share
@@ -412,14 +414,14 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
                                for v in range(4))
                 if together >= 2 or (np.count_nonzero(up[family]) >= 2 and scores[family, w] < 3.0):
                     over[family, w] = False
-        below = np.where(over, 0, np.where(excited[k], below + 1, below))
-        alarm = np.where(over, True, np.where(below >= 5, False, alarm))
+        below = np.where(over, 0.0, np.where(excited[k], below + row_weight * s.evidence_interval, below))
+        alarm = np.where(over, True, np.where(below >= s.release_time - 1e-9, False, alarm))
         np.testing.assert_array_equal(got[k], alarm)
     np.testing.assert_allclose(batched._evidence, evidence, atol=1e-9)
     np.testing.assert_allclose(batched._shift, shift, atol=1e-9)
     np.testing.assert_allclose(batched._level.value, level, atol=1e-9)
     np.testing.assert_allclose(batched._typical_bound.value, typical, atol=1e-9)
-    np.testing.assert_array_equal(batched._below, below)
+    np.testing.assert_allclose(batched._below, below, atol=1e-9)
 
 
 @settings(max_examples=60, deadline=None)

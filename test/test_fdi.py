@@ -190,8 +190,11 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
     profile = load_profile(params)
     np.testing.assert_allclose(profile.dynamics.viscous_friction, 0.035, rtol=0.05)
     from youbot_fdi.fdi.residuals import BOUND_TERMS
-    learned = {name for family, names in BOUND_TERMS.items() if family != 'effort' for name in names}
-    assert set(profile.fdi) == learned | {'sample_interval', 'contact_share_floor'}  # velocity mode, no delay fit
+    families = [family for family in BOUND_TERMS if family != 'effort']  # velocity mode, no delay fit
+    learned = {name for family in families for name in BOUND_TERMS[family]}
+    ranges = {f'{family}_feature_range' for family in families}
+    assert set(profile.fdi) == learned | ranges | {'sample_interval', 'contact_share_floor',
+                                                   'speed_sigma', 'calibrated_effort'}
     assert profile.fdi['contact_share_floor'] == 0.0  # per-wheel friction: no contact law to bound
     assert profile.identification['friction_sweep']['rmse']
     assert (tmp_path / 'sweep.png').stat().st_size > 5_000

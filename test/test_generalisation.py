@@ -197,7 +197,7 @@ def test_a_torque_shift_inside_the_bound_is_found_and_held(model):
     assert expected <= raised - len(steady) <= 1.3 * expected  # the level follows a little meanwhile
     assert cleared > len(steady) + len(shifted)  # held through 10 s of the fault
     # the ceiling drains quickly; the episode heals heal_time later (frames every 10 ms)
-    assert cleared - len(steady) - len(shifted) <= settings.release + 30 + settings.heal_time / 0.01
+    assert cleared - len(steady) - len(shifted) <= (settings.release_time + settings.heal_time) / 0.01 + 30
 
 
 def test_a_slow_drift_of_the_same_size_is_not_a_fault(model):

@@ -87,7 +87,7 @@ def test_noise_alone_learns_nothing():
     acceleration = rng.normal(scale=20.0, size=speed.shape)
     correction, notes = fit_torque_correction(speed, acceleration, rng.normal(scale=0.02, size=speed.shape),
                                               SCALE, 0.01)
-    assert correction is None and 'physics only' in notes[-1]
+    assert correction is None and 'without the learned correction' in notes[-1]
 
 
 def test_a_friction_only_file_reads_with_no_inertial_part():
@@ -226,7 +226,7 @@ def test_a_recording_outside_the_calibrated_range_falls_back_and_warns(tmp_path)
     events = pipeline.replay(tmp_path / 'fast').events
     unseen = [e for e in events if e.fault == UNSEEN_OPERATING_POINT]
     assert [e.level for e in unseen][:2] == ['WARN', 'OK'] and unseen[0].wheel is None
-    assert 'not seen in calibration' in unseen[0].detail and 'physics only' in unseen[0].detail
+    assert 'beyond what calibration covered' in unseen[0].detail and 'without the learned correction' in unseen[0].detail
     assert not [e for e in events if e.level == 'ERROR']
     frames = pipeline.residuals()
     outside = frames.outside_calibration > 0

@@ -37,7 +37,7 @@ def test_a_flapping_alarm_is_one_episode_with_a_count():
     last_ok = events[-1]
     assert last_ok.level == 'OK' and published[1].stamp == pytest.approx(last_ok.stamp + settings.heal_time)
     returns = sum(1 for e in events if e.level == 'ERROR') - 1
-    assert f'came back {returns} times' in published[1].detail
+    assert f'came back {returns} time(s)' in published[1].detail
 
 
 def test_confirmation_skips_a_blip_and_times_a_standing_alarm():

@@ -15,6 +15,13 @@ from youbot_fdi.yamlio import load_yaml
 
 ROS_PARAMETERS = 'ros__parameters'
 WILDCARD = '/**'
+#: Field metadata of a float setting for which +inf is a value ("no limit", YAML ``.inf``).
+UNBOUNDED = 'unbounded'
+
+
+def unbounded(default):
+    """A float setting that may be ``.inf`` (no limit): ``x: float = unbounded(math.inf)``."""
+    return dataclasses.field(default=default, metadata={UNBOUNDED: True})
 
 
 def node_parameters(data, node_name, source='<parameters>'):
@@ -53,6 +60,8 @@ def _coerce(field, value, source):
             raise ConfigError(f'{where} must be an integer, got {value!r}')
         return value
     if isinstance(default, float):
+        if field.metadata.get(UNBOUNDED) and isinstance(value, float) and value == math.inf:
+            return value
         return finite_number(value, where)
     if isinstance(default, str):
         if not isinstance(value, str):

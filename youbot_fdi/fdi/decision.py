@@ -1,8 +1,12 @@
 """Decisions: residual alarms -> isolated wheel and fault type -> fault events with hysteresis.
 
 1. **Alarms.** Evidence accumulates per residual over time (a CUSUM of the scores z = |r| / u):
-   ``g_k = max(0, g_{k-1} + min(z_k, evidence_cap) - evidence_drift)``; a residual alarms while
-   ``g >= evidence_threshold`` and clears after ``release`` excited samples below it. A small
+   ``g_k = max(0, g_{k-1} + w_k (min(z_k, evidence_cap) - evidence_drift))``, each sample weighted
+   by the time it stands for, ``w_k = min(1, dt_k / evidence_interval)``: residuals are correlated
+   over tens of milliseconds, so a faster sampled base gains no more evidence per second than a
+   slower one (no new false alarms at 250 Hz), and no single sample counts for more than one
+   interval (none at 20 Hz); a residual alarms while ``g >= evidence_threshold`` and clears after
+   ``release_time`` of excited samples below it (their time, counted the same way). A small
    persistent excess is found (it adds up), a single spike is not an alarm (it is capped and
    drains away). Torque and command-path evidence on half the wheels or more at once (half the
    threshold each, rising within ``shared_window`` of each other) is a change they share, not a
@@ -152,7 +156,7 @@ class DecisionMaker:
         self._rest_stamp = NEVER  # [s] of the last row in which every wheel stood
         self._pass = {}  # the states after each row of the last block judged (see _rewind)
         self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
-        self._below = np.zeros(shape, dtype=int)
+        self._below = np.zeros(shape)  # excited time below the threshold since the last alarm [s]
         self.load_level = OK  # of the load condition (OK or WARN)
         self.range_level = OK  # of the learned correction's calibrated range (OK or WARN)
         self._outside_stamp = NEVER  # [s] of the last row outside that range
@@ -208,10 +212,19 @@ class DecisionMaker:
         self._rest_stamp = float(rest[-1])
         return ~resting & (stamps - rest < self.settings.breakaway_time)
 
-    def evidence(self, z, shift):
+    def sample_weights(self, stamps):
+        """The evidence weight of each row at ``stamps`` (N,) [s]: ``min(1, dt / evidence_interval)``
+        with dt since the row before (1 for the first row after a start)."""
+        steps = np.diff(np.concatenate([[self._last_stamp], np.asarray(stamps, dtype=float)]))
+        interval = self.settings.evidence_interval
+        weight = np.where(steps >= interval - STAMP_TOLERANCE, 1.0, steps / interval)  # stamps round
+        return np.where(np.isfinite(weight) & (weight > 0.0), weight, 1.0)
+
+    def evidence(self, z, shift, weight):
         """The accumulated evidence (N, families, n) after each row of scores ``z`` (N, families,
-        n) and torque shift scores ``shift`` (N, n), continuing from the state before; leaves the
-        state after the last row.
+        n) and torque shift scores ``shift`` (N, n), each row weighted by ``weight`` (N,)
+        (:meth:`sample_weights`), continuing from the state before; leaves the state after the last
+        row.
 
         The magnitude CUSUM of each residual, ``min(z, cap) - evidence_drift``; for the torque
         residuals also the CUSUMs of their shift, up and down, ``min(+-shift, cap) - shift_drift``
@@ -219,10 +232,11 @@ class DecisionMaker:
         ``evidence_threshold``; the larger counts.
         """
         s = self.settings
-        g = cusum(np.minimum(z, s.evidence_cap) - s.evidence_drift, self._evidence)
+        g = cusum(weight[:, None, None] * (np.minimum(z, s.evidence_cap) - s.evidence_drift),
+                  self._evidence)
         capped = np.clip(shift, -s.evidence_cap, s.evidence_cap)
-        shifted = bounded_cusum(np.stack([capped, -capped], axis=1) - s.shift_drift, self._shift,
-                                SHIFT_CEILING * s.shift_threshold)
+        shifted = bounded_cusum(weight[:, None, None] * (np.stack([capped, -capped], axis=1) - s.shift_drift),
+                                self._shift, SHIFT_CEILING * s.shift_threshold)
         self._pass['evidence'], self._pass['shift'] = g, shifted
         self._evidence, self._shift = g[-1], shifted[-1]
         return self._judged(g, shifted)
@@ -323,26 +337,31 @@ class DecisionMaker:
         """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout.
 
         Sequentially: an alarm is set while the evidence is at the threshold, cleared once
-        ``below`` (excited rows since it last was) reaches ``release``, and otherwise kept. So the
-        alarm after row k is decided by the latest row that set or cleared it.
+        ``below`` (excited time since it last was, each row's weighted time) reaches
+        ``release_time``, and otherwise kept. So the alarm after row k is decided by the latest row
+        that set or cleared it.
         """
         threshold = self.settings.evidence_threshold
         before = self._judged(self._evidence, self._shift)
-        evidence = self.evidence(z, self.torque_shift(torque, torque_bound, stamps, hold, fresh))
+        weight = self.sample_weights(stamps)
+        step = weight * self.settings.evidence_interval  # [s] the time each row counts for
+        evidence = self.evidence(z, self.torque_shift(torque, torque_bound, stamps, hold, fresh),
+                                 weight)
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps)
         rows = len(over)
+        release = self.settings.release_time - STAMP_TOLERANCE  # summed steps round
         if rows == 1:  # the same latch, one row (the live path)
-            self._below = np.where(over[0], 0, self._below + excited[0])
-            self.alarm = over[0] | (self.alarm & (self._below < self.settings.release))
+            self._below = np.where(over[0], 0.0, self._below + excited[0] * step[0])
+            self.alarm = over[0] | (self.alarm & (self._below < release))
             return self.alarm[None]
-        counted = np.cumsum(excited[:, None, :] & ~over, axis=0)
+        counted = np.cumsum((excited[:, None, :] & ~over) * step[:, None, None], axis=0)
         at_last_over = np.maximum.accumulate(np.where(over, counted, -1), axis=0)
         below = np.where(at_last_over >= 0, counted - at_last_over, self._below + counted)
         index = np.arange(rows)[:, None, None]
         last_set = np.maximum.accumulate(np.where(over, index, -1), axis=0)
-        last_clear = np.maximum.accumulate(np.where(below >= self.settings.release, index, -1), axis=0)
+        last_clear = np.maximum.accumulate(np.where(below >= release, index, -1), axis=0)
         alarm = np.where(last_set > last_clear, True, np.where(last_clear > last_set, False, self.alarm))
         self._pass['below'], self._pass['alarm'] = below, alarm
         self._below, self.alarm = below[-1], alarm[-1]
@@ -403,8 +422,9 @@ class DecisionMaker:
         for k, level in condition_changes(self.range_level, out, back):
             if level == WARN:
                 wheels = ', '.join(self.suffixes[w] for w in masked_wheels(outside[k], self.n))
-                detail = (f'operating point not seen in calibration ({wheels}): physics only '
-                          'there, without the learned correction')
+                detail = (f'operating point beyond what calibration covered ({wheels}): bounds '
+                          "widened with the prior's uncertainty there, the physics without the "
+                          'learned correction')
             else:
                 detail = 'operating point back within the calibrated range'
             events.append(FaultEvent(float(stamps[k]), level, BASE, UNSEEN_OPERATING_POINT,

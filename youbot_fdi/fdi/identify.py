@@ -52,7 +52,18 @@ FLOOR_FRACTION = 0.25  # a learned floor never goes below this fraction of the c
 MIN_SAMPLES = 50
 DELAY_STEP = 0.0025  # input-delay grid step [s]
 MAX_DELAY = 0.08  # [s]; the grid starts one sample interval early (commands stamped late)
-QUANTILE_ROWS = 20000  # rows the quantile regression uses at most (a random, seeded subset)
+QUANTILE_ROWS = 6000  # rows the quantile regression uses at most (a random, seeded subset)
+#: The range of a bound feature calibration covered: this quantile of its values, and the same for
+#: the largest wheel torque measured (the whole range: it is what was seen).
+RANGE_QUANTILE = 1.0
+#: The searches over the input delay and the firmware gains simulate the command path many
+#: times: they run on the recording decimated to at most SEARCH_RATE and SEARCH_SAMPLES samples
+#: (the discretisation is exact for any interval; every command is kept). The fits of the
+#: dynamics and the bounds use every sample.
+SEARCH_RATE = 100.0  # [Hz]
+SEARCH_SAMPLES = 6000
+#: The delay search: the grid every DELAY_COARSE_STEPS steps, then every step around the best.
+DELAY_COARSE_STEPS = 4
 MIN_INTEGRAL_SHARE = 0.05  # a P-only prior starts the gain fit at ki = this x kp [1/s]
 SIGN_REFITS = 3  # fits of a magnitude-only effort, each signed by the previous fit
 GAIN_DELAY_ROUNDS = 2  # alternations of the PI-gain fit and the input-delay search
@@ -231,21 +242,42 @@ def delay_grid(interval):
     return np.round(np.arange(-early, MAX_DELAY + DELAY_STEP / 2, DELAY_STEP), 6)
 
 
+def for_search(arrays):
+    """``arrays`` decimated for the searches (:data:`SEARCH_RATE`, :data:`SEARCH_SAMPLES`)."""
+    interval = float(np.median(np.diff(arrays.time)))
+    every = max(1, int(math.ceil(1.0 / (SEARCH_RATE * interval))),
+                int(math.ceil(len(arrays.time) / SEARCH_SAMPLES)))
+    if every == 1:
+        return arrays
+    pick = slice(None, None, every)
+    return replace(arrays, time=arrays.time[pick], position=arrays.position[pick],
+                   velocity=arrays.velocity[pick], torque=arrays.torque[pick])
+
+
 def fit_input_delay(model, arrays, delays):
     """The input delay [s] on the grid ``delays`` that best explains the measurements from the
     commands: the speeds through the firmware loop (velocity commands), else the measured effort
-    (current-mode commands). Returns (delay, mean squared errors on the grid), or None without
-    commands."""
+    (current-mode commands); the grid is searched every ``DELAY_COARSE_STEPS`` steps, then step
+    by step around the best. Returns (delay, mean squared errors on the grid: NaN where not
+    tried), or None without commands."""
     kinds = {c.kind for c in arrays.commands}
     if 'velocity' in kinds:
-        errors = [np.mean((arrays.velocity - simulate_from_commands(model, arrays, d)) ** 2)
-                  for d in delays]
+        def error(d):
+            return float(np.mean((arrays.velocity - simulate_from_commands(model, arrays, d)) ** 2))
     elif 'effort' in kinds:
-        errors = [_effort_error(model, arrays, d) for d in delays]
+        def error(d):
+            return _effort_error(model, arrays, d)
     else:
         return None
-    errors = np.array(errors)
-    return float(delays[int(np.argmin(errors))]), errors
+    errors = np.full(len(delays), np.nan)
+    coarse = list(range(0, len(delays), DELAY_COARSE_STEPS)) + [len(delays) - 1]
+    for k in sorted(set(coarse)):
+        errors[k] = error(delays[k])
+    best = int(np.nanargmin(errors))
+    for k in range(max(0, best - DELAY_COARSE_STEPS + 1), min(len(delays), best + DELAY_COARSE_STEPS)):
+        if np.isnan(errors[k]):
+            errors[k] = error(delays[k])
+    return float(delays[int(np.nanargmin(errors))]), errors
 
 
 def nrmse(measured, predicted):
@@ -338,7 +370,19 @@ def fit_bounds(batch, settings):
         weights[0] = max(weights[0], FLOOR_FRACTION * getattr(settings, names[0]))
         learned.update({name: float(w) for name, w in zip(names, weights)})
         coverage[family] = float(np.mean(target[rows] <= features[rows] @ weights))
+        covered = np.quantile(features[rows].reshape(-1, len(names)), RANGE_QUANTILE, axis=0)
+        covered[0] = math.inf  # the floor's constant feature
+        learned[f'{family}_feature_range'] = [float(v) for v in covered]
     return learned, coverage
+
+
+def speed_noise(arrays):
+    """The speed reading's noise [rad/s]: the robust spread of its second differences over the
+    samples, sqrt(6) times the noise of independent errors (the motion's own curvature over two
+    intervals is far smaller at any rate a driver samples)."""
+    second = np.diff(arrays.velocity, n=2, axis=0)
+    mad = np.median(np.abs(second - np.median(second, axis=0)))
+    return float(1.4826 * mad / math.sqrt(6.0))
 
 
 def contact_share_floor(model, arrays, settings):
@@ -408,23 +452,25 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))
     firmware, delay = None, None
     delays = delay_grid(interval)
-    found = fit_input_delay(model, arrays, delays) if fit_gains else None
+    searched = for_search(arrays)
+    found = fit_input_delay(model, searched, delays) if fit_gains else None
     if found is not None and any(c.kind == 'velocity' for c in arrays.commands):
         # Gains and delay trade off (a slower loop mimics a late one): alternate, from the delay.
         for _ in range(GAIN_DELAY_ROUNDS):
             delay = found[0]
-            firmware = fit_firmware_gains(model, arrays, delay)
+            firmware = fit_firmware_gains(model, searched, delay)
             model = PlatformModel(replace(model.profile, firmware=firmware))
-            found = fit_input_delay(model, arrays, delays)
+            found = fit_input_delay(model, searched, delays)
     if found is not None:
         delay, delay_errors = found
-        info['input_delay_grid'] = {'delay_s': [round(float(d), 4) for d in delays],
-                                    'mse': [float(f'{e:.4g}') for e in delay_errors]}
-    sweep = friction_sweep(model, arrays)
+        tried = np.isfinite(delay_errors)
+        info['input_delay_grid'] = {'delay_s': [round(float(d), 4) for d in delays[tried]],
+                                    'mse': [float(f'{e:.4g}') for e in delay_errors[tried]]}
+    sweep = friction_sweep(model, searched)
     nrmse_currents = nrmse(arrays.velocity, simulate_from_currents(model, arrays))
     nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays, delay))
                       if firmware is not None else None)
-    settings = replace(settings, sample_interval=interval,
+    settings = replace(settings, sample_interval=interval, speed_sigma=speed_noise(arrays),
                        contact_share_floor=contact_share_floor(model, arrays, settings))
     if delay is not None:
         settings = replace(settings, input_delay=delay)
@@ -437,6 +483,10 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
     info['learning'] = {'notes': notes, 'residual_rms': spread} if learn else 'physics only'
 
     fdi['sample_interval'] = interval
+    fdi['speed_sigma'] = settings.speed_sigma
+    fdi['calibrated_effort'] = float(np.quantile(np.abs(arrays.torque[np.isfinite(arrays.torque)]),
+                                                 RANGE_QUANTILE)) if np.isfinite(arrays.torque).any() \
+        else math.inf
     fdi['contact_share_floor'] = settings.contact_share_floor
     if delay is not None:
         fdi['input_delay'] = delay

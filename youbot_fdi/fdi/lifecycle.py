@@ -94,7 +94,7 @@ class EventLifecycle:
         if episode.raw_state[0] == OK:
             fault = episode.shown.fault
             detail = (f'healed: no evidence for {self.settings.heal_time:g} s'
-                      + (f'; the alarm came back {episode.returns} times in the episode'
+                      + (f'; it came back {episode.returns} time(s) within the episode'
                          if episode.returns else ''))
             published = replace(raw, stamp=stamp, fault=fault, residuals=(), detail=detail) \
                 if raw is not None else None

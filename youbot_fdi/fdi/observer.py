@@ -41,6 +41,8 @@ from youbot_fdi.structure.generate import wheel_suffix
 #: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
 STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
+#: The share of the largest calibrated torque from which the command path is not predicted [-].
+CALIBRATED_SHARE = 0.95
 #: Commands kept while no joint state arrives (a bound on memory, far above any input delay).
 MAX_PENDING_COMMANDS = 256
 #: Per-wheel fields of a prediction, in labelled-vector order (see Prediction.to_labelled).
@@ -179,6 +181,7 @@ class ModelObserver:
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
         self._load = (np.zeros(2 * self.n), 1.0)
         self._last = None  # (stamp, velocity, signed torque) of the last sample
+        self._was_beyond = False  # the last sample's torque was beyond the calibrated range
         #: samples that restart the observer, by cause (reported with the skipped messages)
         self.counters = dict.fromkeys(STAMP_COUNTERS, 0)
 
@@ -244,6 +247,20 @@ class ModelObserver:
                 a, b, c = a1 @ a, a1 @ b + b1, a1 @ c + c1
             self._loop_cache[steps] = (a, b, c)
         return self._loop_cache[steps]
+
+    def _beyond_current(self, torque):
+        """Wheels (..., n) whose measured torque [N·m] reaches the largest calibration saw
+        (``calibrated_effort``, less ``1 - CALIBRATED_SHARE`` of it: that largest may itself have
+        been the firmware's limit): the current limit may act there unseen, so the command path
+        takes the measured state instead of predicting (honest extrapolation)."""
+        return (np.abs(np.where(np.isnan(torque), 0.0, torque))
+                >= CALIBRATED_SHARE * self.settings.calibrated_effort)
+
+    def _unseen_current(self, torque):
+        """Wheels (..., n) whose measured torque [N·m] is beyond the largest calibration saw by
+        more than ``calibration_range_margin`` of it (the WARN unseen_operating_point)."""
+        limit = (1.0 + self.settings.calibration_range_margin) * self.settings.calibrated_effort
+        return np.abs(np.where(np.isnan(torque), 0.0, torque)) > limit
 
     def _start_integral(self, torque, velocity, velocity_mode, target):
         """The PI integral that explains the measured current at a (re)start, shape (..., n)."""
@@ -438,8 +455,10 @@ class ModelObserver:
     def _load_factor(self, smoothed, previous):
         """The platform-wide load factor from the smoothed (load part; friction) (..., 2n): the
         part of the departure that every voting wheel shares (all heavier: the least heavy, all
-        lighter: the least light, else 1), bounded; ``previous`` where no wheel votes."""
-        n, limit = self.n, self.settings.load_factor_limit
+        lighter: the least light, else 1), at any size: a floor or payload three times the
+        calibration's is shared as much as one ten percent off (one wheel alone cannot move it
+        past the others, whatever its size); ``previous`` where no wheel votes."""
+        n = self.n
         load, friction = smoothed[..., :n], smoothed[..., n:]
         votes = np.abs(friction) >= self.settings.torque_sigma
         ratio = load / np.where(votes, friction, 1.0)
@@ -447,8 +466,8 @@ class ModelObserver:
         lighter = np.all(~votes | (ratio < 1.0), axis=-1)
         shared = np.where(heavier, np.min(np.where(votes, ratio, np.inf), axis=-1),
                           np.where(lighter, np.max(np.where(votes, ratio, -np.inf), axis=-1), 1.0))
-        shared = np.clip(shared, 1.0 / limit, limit)
-        return shared, votes.any(axis=-1)
+        # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
+        return np.maximum(shared, 0.0), votes.any(axis=-1)
 
     def _smoothing(self, step):
         """Per-row weight of the past in the load factor's smoothing (``load_time_constant``)."""
@@ -495,8 +514,17 @@ class ModelObserver:
 
         before = self._command_state[:n]
         steps = max(1, int(np.rint(dt / self.period)))
-        self._command_state = (self._command_step(self._command_state, steps, target, coulomb)[0]
-                               if velocity_mode else np.concatenate([velocity, np.zeros(n)]))
+        beyond = self._beyond_current(torque)
+        # The row after one beyond the calibrated current re-syncs too: its current is within the
+        # loop's range again, so the PI integral it implies is the loop's (one inferred from a
+        # clipped current is not).
+        resync, self._was_beyond = beyond.any() or self._was_beyond, bool(beyond.any())
+        if velocity_mode and not resync:
+            self._command_state = self._command_step(self._command_state, steps, target, coulomb)[0]
+        else:  # current mode, or a current calibration never saw: the measured state
+            self._command_state = np.concatenate([velocity, self._start_integral(
+                torque, velocity, velocity_mode, target) if velocity_mode else np.zeros(n)])
+        outside = float(int(outside) | int(wheel_mask(~self._unseen_current(torque))))
         prediction = Prediction(
             stamp=stamp, since=last_stamp, from_currents=predicted,
             from_commands=self._command_state[:n], commands_before=before, commanded=target,
@@ -562,11 +590,18 @@ class ModelObserver:
         observer = affine_recursion(a, b, observer_before)
         predicted = matvec(phi, np.concatenate([observer_before[None], observer[:-1]])) + forced
 
-        hold = restart | ~velocity_mode
+        beyond = self._beyond_current(torque)
+        was_beyond = np.concatenate([[self._was_beyond], beyond.any(axis=1)[:-1]])
+        resync = beyond.any(axis=1) | was_beyond  # as in update(): and the row after
+        self._was_beyond = bool(beyond[-1].any())
+        hold = restart | ~velocity_mode | resync
         integral = np.zeros_like(velocity)
-        if restart.any():
-            integral[restart] = self._start_integral(torque[restart], velocity[restart],
-                                                     velocity_mode[restart], target[restart])
+        measured = restart | (velocity_mode & resync)  # rows that take the measured state
+        if measured.any():
+            integral[measured] = self._start_integral(torque[measured], velocity[measured],
+                                                      velocity_mode[measured], target[measured])
+        outside = (np.asarray(outside).astype(np.int64)
+                   | wheel_mask(~self._unseen_current(torque)).astype(np.int64)).astype(float)
         held = np.concatenate([velocity, integral], axis=1)
         command_before = self._command_state
         path = self._command_path(dt, hold, held, velocity_mode, target, coulomb)

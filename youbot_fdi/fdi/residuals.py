@@ -38,7 +38,10 @@ import math
 
 import numpy as np
 
+from youbot_fdi.errors import ConfigError
+from youbot_fdi.fdi.learned import wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, signed_torque
+from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import last_true_value, run_lengths
 from youbot_fdi.samples import JointBatch, VELOCITY
 from youbot_fdi.structure.generate import wheel_suffix
@@ -64,11 +67,31 @@ BOUND_TERMS = {
 #: A position reading that repeats exactly while the wheel should have turned this many encoder
 #: ticks within the interval is evidence of a frozen sensor [ticks].
 FROZEN_MIN_TICKS = 2.0
+#: ... the speed counted for that less this many of the speed reading's noise (``speed_sigma``):
+#: a reading inside its own noise does not show that the wheel turns (three sigma: a standing
+#: wheel's noisy reading passes it in about one sample of 700, and three in a row practically never).
+FROZEN_NOISE_SIGMAS = 3.0
 
 
 def bound_weights(settings, family):
     """The weights of ``family``'s bound features (:data:`BOUND_TERMS`) in ``settings``, (k,)."""
     return np.array([getattr(settings, name) for name in BOUND_TERMS[family]])
+
+
+def feature_range(settings, family):
+    """The range (k,) of ``family``'s bound features calibration covered (inf: no limit); a
+    ConfigError naming the setting when its length does not fit."""
+    values = np.asarray(getattr(settings, f'{family}_feature_range'), dtype=float).reshape(-1)
+    if len(values) != len(BOUND_TERMS[family]):
+        msg = (f'{family}_feature_range has {len(values)} values; {family} bounds have '
+               f'{len(BOUND_TERMS[family])} features ({", ".join(BOUND_TERMS[family])})')
+        raise ConfigError(msg)
+    return values
+
+
+#: The prior's uncertainty: the default weights (config/fdi.yaml's values), which a feature's
+#: excess beyond the calibrated range is weighed with where the learned weight is smaller.
+PRIOR_SETTINGS = FdiSettings()
 
 
 def columns(*values):
@@ -276,6 +299,10 @@ class ResidualEvaluator:
         stiffness = model.firmware.velocity_kp * drive.torque_per_amp
         self.loop_compliance = 1.0 / stiffness if stiffness > 0.0 else 0.0
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
+        self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
+        self._beyond = {family: np.maximum(self._coefficients[family],
+                                           bound_weights(PRIOR_SETTINGS, family))
+                        for family in BOUND_TERMS}
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
         self._fresh = None  # (n,) stamp of each wheel's last reading [s]
         self._frozen = np.zeros(self.n, dtype=int)
@@ -342,8 +369,25 @@ class ResidualEvaluator:
     # Shapes (n,) for one sample or (N, n) for a block; ``step`` is dt [s] (a scalar, or (N, 1)).
     # Each returns the residual and its bound's features (..., n, k) (:data:`BOUND_TERMS`).
     def bound(self, family, features):
-        """The bound [residual units] of ``family`` from its features (..., n, k)."""
-        return features @ self._coefficients[family]
+        """The bound [residual units] of ``family`` from its features (..., n, k): the learned
+        weights within the range calibration covered; a feature's excess beyond it weighed with
+        the larger of its learned and its default weight (honest extrapolation)."""
+        inside = np.minimum(features, self._ranges[family])
+        bound = inside @ self._coefficients[family]
+        if np.isfinite(self._ranges[family]).any():
+            bound = bound + (features - inside) @ self._beyond[family]
+        return bound
+
+    def beyond_calibration(self, features):
+        """Wheels (..., n) bool whose bound features ({family: (..., n, k)}) leave the range
+        calibration covered in any family by more than ``calibration_range_margin`` of it (the
+        WARN: the bounds widen from the range on)."""
+        beyond = None
+        margin = 1.0 + self.settings.calibration_range_margin
+        for family, values in features.items():
+            out = np.any(values > margin * self._ranges[family], axis=-1)
+            beyond = out if beyond is None else beyond | out
+        return beyond
 
     def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, explained, friction, unseen,
                       load, step):
@@ -387,9 +431,12 @@ class ResidualEvaluator:
 
     def _moving(self, mean_speed, target, velocity_mode, step):
         """Wheels that should have turned at least ``FROZEN_MIN_TICKS`` within the interval, by the
-        measured and (velocity mode) the commanded speed: only then is a repeated position reading
-        evidence (a lagging speed reading keeps turning for a while after the wheel stops)."""
-        speed = np.where(velocity_mode, np.minimum(np.abs(mean_speed), np.abs(target)), np.abs(mean_speed))
+        measured speed less its noise and (velocity mode) the commanded speed: only then is a
+        repeated position reading evidence (a lagging speed reading keeps turning for a while
+        after the wheel stops; a noisy one is not zero at rest; an interval too short for a tick
+        proves nothing)."""
+        measured = np.maximum(0.0, np.abs(mean_speed) - FROZEN_NOISE_SIGMAS * self.settings.speed_sigma)
+        speed = np.where(velocity_mode, np.minimum(measured, np.abs(target)), measured)
         return speed * step >= FROZEN_MIN_TICKS * self.position_quantum
 
     @staticmethod
@@ -414,12 +461,18 @@ class ResidualEvaluator:
         torque_r, torque_f, torque_a = self._torque_terms(
             torque, last_torque, velocity, last_velocity, p.explained, p.friction, p.unseen_friction,
             p.load_factor, dt)
-        command_r, command_u, _, _ = self._command_terms(
+        command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
             p.velocity_mode, stamp - self._started < s.startup_time, p.unseen_friction, dt)
         mean_speed = 0.5 * (velocity + last_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, last_position, mean_speed,
                                                    velocity - last_velocity, dt)
+        observer_f = self._observer_features(p.from_currents)
+        beyond = self.beyond_calibration({'torque': torque_f, 'observer': observer_f,
+                                          'encoder': encoder_f,
+                                          **({'command': velocity_f} if p.velocity_mode
+                                             else {'effort': effort_f})})
+        outside = float(int(p.outside_calibration) | int(wheel_mask(~beyond)))
 
         unchanged = (position == last_position) & (velocity == last_velocity)
         self._frozen = np.where(unchanged, self._frozen + 1, 0)
@@ -433,12 +486,12 @@ class ResidualEvaluator:
             values={'torque': torque_r, 'observer': velocity - p.from_currents, 'command': command_r,
                     'encoder': encoder_r},
             bounds={'torque': self.bound('torque', torque_f) + torque_a,
-                    'observer': self.bound('observer', self._observer_features(p.from_currents)),
+                    'observer': self.bound('observer', observer_f),
                     'command': command_u, 'encoder': self.bound('encoder', encoder_f)},
             velocity=velocity, torque=torque, command_mode=VELOCITY if p.velocity_mode else 'effort',
             command=p.commanded, frozen=self._frozen, effort_frozen=self._effort_frozen,
             position_frozen=self._position_frozen, silent=np.zeros(self.n), load_factor=p.load_factor,
-            outside_calibration=p.outside_calibration)
+            outside_calibration=outside)
 
     def update_batch(self, joints, predictions):
         """Residuals of a block of samples (:class:`~youbot_fdi.samples.JointBatch`) and their
@@ -493,12 +546,17 @@ class ResidualEvaluator:
         self._fresh = np.full(n, stamp[-1])
         features = {'torque': torque_f, 'observer': observer_f, 'command': velocity_f,
                     'effort': effort_f, 'encoder': encoder_f}
+        common = self.beyond_calibration({f: features[f] for f in ('torque', 'observer', 'encoder')})
+        beyond = common | np.where(p.velocity_mode[:, None],
+                                   self.beyond_calibration({'command': velocity_f}),
+                                   self.beyond_calibration({'effort': effort_f}))
+        outside = (p.outside_calibration.astype(np.int64)
+                   | wheel_mask(~beyond).astype(np.int64)).astype(float)
         batch = _batch(stamp, torque_r, self.bound('torque', torque_f) + torque_a,
                        velocity - p.from_currents, self.bound('observer', observer_f), command_r,
                        command_u, encoder_r, self.bound('encoder', encoder_f), velocity, torque,
                        p.velocity_mode, p.commanded, frozen, effort_frozen, position_frozen,
-                       np.zeros((rows, n)), p.load_factor, p.from_commands, p.outside_calibration,
-                       features)
+                       np.zeros((rows, n)), p.load_factor, p.from_commands, outside, features)
         return batch.select(~restart) if restart.any() else batch
 
 

@@ -9,8 +9,12 @@ The decision accumulates the evidence of the scores |r| / u over time (a CUSUM),
 persistent fault is found and a single spike is not an alarm.
 """
 from dataclasses import dataclass
+import math
 
 from youbot_fdi.errors import ConfigError
+from youbot_fdi.settings import unbounded
+
+INF = math.inf
 
 
 #: Settings that may be negative: commands stamped after the samples they produce act "early".
@@ -58,9 +62,21 @@ class FdiSettings:
     encoder_speed_fraction: float = 0.2
     encoder_change_fraction: float = 0.5  # of the speed change within the interval (trapezoid error)
     timing_jitter: float = 0.002  # how far a sample's stamp may be off its sampling instant [s]
+    #: noise of the speed reading (``identify`` measures it) [rad/s]
+    speed_sigma: float = 0.01
+    # The range of each bound feature calibration covered (``identify`` records it; inf: none):
+    # beyond it a feature's excess is weighed with the larger of its learned and its default weight
+    # (the prior's uncertainty), so extrapolation widens the bound (youbot_fdi/fdi/residuals.py).
+    torque_feature_range: tuple = (INF,) * 4
+    observer_feature_range: tuple = (INF,) * 2
+    command_feature_range: tuple = (INF,) * 4
+    effort_feature_range: tuple = (INF,) * 2
+    encoder_feature_range: tuple = (INF,) * 4
+    #: the largest wheel torque calibration measured [N·m] (inf: none): beyond it the firmware's
+    #: current limit may act where calibration never saw it, so the command path does not predict
+    calibrated_effort: float = unbounded(INF)
     # the platform-wide load condition (floor covering, payload, slope): common-mode rejection
     load_time_constant: float = 0.5  # smoothing of the per-wheel load estimates [s]
-    load_factor_limit: float = 2.0  # the load factor stays within [1/limit, limit] [-]
     load_allowance: float = 0.5  # share of the load's change to the friction torque the bound allows [-]
     load_warn: float = 0.25  # a load factor this far from 1 is reported (WARN) [-]
     # decision: evidence g_k = max(0, g_{k-1} + min(|r|/u, cap) - drift), alarm at g >= threshold
@@ -72,7 +88,9 @@ class FdiSettings:
     shift_time_constant: float = 3.0  # memory of the recent level [s]
     shift_drift: float = 0.5  # half the shift it is made for: one bound [-]
     shift_threshold: float = 6.0  # [-]
-    release: int = 50  # excited samples without evidence to clear an alarm
+    release_time: float = 0.5  # excited time without evidence that clears an alarm [s]
+    #: the time one sample's evidence stands for: a sample counts min(1, dt / this) of it [s]
+    evidence_interval: float = 0.01
     shared_window: float = 1.0  # evidence rising on half the wheels within this is shared [s]
     second_fault_score: float = 3.0  # |r|/u from which a later-rising wheel is judged on its own [-]
     frozen_samples: int = 3  # identical readings that count as frozen
@@ -104,17 +122,16 @@ class FdiSettings:
         problems = [name for name, value in self.__dict__.items()
                     if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0
                     and name not in SIGNED]
-        for name in ('release', 'frozen_samples'):
+        for name in ('frozen_samples',):
             if getattr(self, name) < 1:
                 problems.append(name)
-        for name in ('observer_time_constant', 'comm_timeout', 'command_timeout',
+        for name in ('observer_time_constant', 'comm_timeout', 'command_timeout', 'release_time',
+                     'evidence_interval',
                      'classification_window', 'load_time_constant', 'evidence_threshold',
                      'evidence_drift', 'shared_window', 'second_fault_score', 'shift_time_constant',
                      'shift_threshold'):
             if getattr(self, name) <= 0:
                 problems.append(name)
-        if self.load_factor_limit < 1.0:
-            problems.append('load_factor_limit')
         if not 0.5 <= self.bound_quantile < 1.0:
             problems.append('bound_quantile')
         if self.contact_share_floor > 1.0:
