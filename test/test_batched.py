@@ -368,8 +368,9 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     breaking = rng.random(rows) < 0.15
     got = batched._alarms(z, excited, stamps, torque, bound, breaking)
     s = settings_
-    level_share = 0.5 * s.evidence_threshold
-    scale = s.evidence_threshold / s.shift_threshold
+    threshold = s.family_thresholds[0]  # the same for every family by default
+    level_share = 0.5 * threshold
+    scale = threshold / s.shift_threshold
     for k in range(rows):
         was_up = np.maximum(evidence, np.vstack([np.maximum(shift.max(axis=0) * scale, evidence[0]),
                                                  evidence[1:]])) >= level_share
@@ -407,7 +408,7 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
         judged[0] = np.maximum(judged[0], shift.max(axis=0) * scale)
         up = judged >= level_share
         rise = np.where(up & ~was_up, stamps[k], rise)
-        over = judged >= s.evidence_threshold
+        over = judged >= threshold
         for family in (0, 2):  # torque, command: not while half the wheels rose together, nor
             for w in range(4):  # a modest score while half the wheels have evidence
                 together = sum(up[family, v] and abs(rise[family, v] - rise[family, w]) <= 0.5

@@ -194,7 +194,9 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
     learned = {name for family in families for name in BOUND_TERMS[family]}
     ranges = {f'{family}_feature_range' for family in families}
     assert set(profile.fdi) == learned | ranges | {'sample_interval', 'contact_share_floor',
-                                                   'speed_sigma', 'calibrated_effort'}
+                                                   'speed_sigma', 'calibrated_effort',
+                                                   'calibrated_speed_range', 'family_thresholds',
+                                                   'shift_threshold'}
     assert profile.fdi['contact_share_floor'] == 0.0  # per-wheel friction: no contact law to bound
     assert profile.identification['friction_sweep']['rmse']
     assert (tmp_path / 'sweep.png').stat().st_size > 5_000

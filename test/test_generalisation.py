@@ -145,7 +145,7 @@ def _first_alarm(model, scores):
 def test_a_small_persistent_excess_adds_up_to_an_alarm(model):
     settings = FdiSettings()
     k = _first_alarm(model, [1.3] * 40)
-    expected = math.ceil(settings.evidence_threshold / (1.3 - settings.evidence_drift)) - 1
+    expected = math.ceil(settings.family_thresholds[0] / (1.3 - settings.evidence_drift)) - 1
     assert k == expected
     assert _first_alarm(model, [0.95] * 400) is None  # inside the bound: never
 

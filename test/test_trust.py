@@ -49,7 +49,7 @@ def test_evidence_accumulates_per_second_whatever_the_rate(model, rate):
     counts a whole interval)."""
     s = FdiSettings()
     z = 2.0
-    expected = (math.ceil(s.evidence_threshold / (z - s.evidence_drift)) - 1) * s.evidence_interval
+    expected = (math.ceil(s.family_thresholds[0] / (z - s.evidence_drift)) - 1) * s.evidence_interval
     assert first_alarm_time(model, rate, z) == pytest.approx(expected, abs=1.0 / rate + 1e-9)
 
 
@@ -57,7 +57,7 @@ def test_a_slow_base_needs_as_many_samples_as_intervals(model):
     """At 20 Hz no sample counts for more than one interval: a single excess never alarms."""
     s = FdiSettings()
     z = 2.0
-    samples = math.ceil(s.evidence_threshold / (z - s.evidence_drift))
+    samples = math.ceil(s.family_thresholds[0] / (z - s.evidence_drift))
     assert first_alarm_time(model, 20.0, z) == pytest.approx((samples - 1) / 20.0)
 
 
@@ -124,3 +124,21 @@ def test_the_load_factor_follows_a_platform_change_of_any_size(model):
     assert voted and factor == pytest.approx(3.0)
     alone = np.concatenate([np.array([5.0, 1.0, 1.0, 1.0]) * friction, friction])
     assert observer._load_factor(alone, 1.0)[0] == pytest.approx(1.0)
+
+
+def test_friction_beyond_the_calibrated_speeds_is_allowed_between_its_extrapolations(model):
+    """Calibrated at one speed, the friction at a third of it may be anything between the same
+    (all Coulomb) and a third (all viscous): the allowance is the friction at the calibrated speed
+    (same direction) times the relative distance, 2/3 of it; nothing within the range."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    direction = np.array([1.0, -1.0, 1.0, -1.0]) / 2.0  # unit norm
+    calibrated = 6.0  # [rad/s] the norm of the wheel speeds calibration drove at
+    observer = ModelObserver(model, replace(FdiSettings(), calibrated_speed_range=(calibrated, calibrated)))
+    slow = direction * calibrated / 3.0
+    level_there = np.abs(observer.friction * direction * calibrated
+                         + observer._coulomb(direction * calibrated)[1])
+    np.testing.assert_allclose(observer._speed_extrapolation(slow), level_there * 2.0 / 3.0)
+    np.testing.assert_allclose(observer._speed_extrapolation(direction * calibrated), 0.0)
+    fast = direction * calibrated * 2.0  # twice as fast: all-viscous doubles it
+    np.testing.assert_allclose(observer._speed_extrapolation(fast), level_there)
+    assert ModelObserver(model, FdiSettings())._speed_extrapolation(slow) == 0.0  # no calibration

@@ -150,13 +150,17 @@ def judged(fold, cases):
 
 # ---------------------------------------------------------------------- running the folds
 def _convert(job):
-    """Write one case as a recording; (name, scoring.Case) (worker process)."""
+    """Write one case as a recording (kept if the folder has it already: it depends on the data
+    alone); (name, scoring.Case) (worker process)."""
     from youbot_fdi.bench.scoring import Case
     from youbot_fdi.model.profile import load_model
     case, workdir = job
     model = load_model(robotino.PROFILE)
     path = Path(workdir) / case.name.replace('/', '_')
-    start = robotino.write_recording(case.runs, path, model)[0]
+    if (path / 'metadata.yaml').is_file():
+        start = robotino.START_STAMP
+    else:
+        start = robotino.write_recording(case.runs, path, model)[0]
     run = case.runs[0]
     onset = math.nan if case.onset is None else start + float(run.time[case.onset] - run.time[0])
     return case.name, Case(case.name, str(path), float(run.time[-1] - run.time[0]), case.fault,
@@ -171,8 +175,9 @@ def _calibrate(job):
     fold, runs, workdir = job
     model = load_model(robotino.PROFILE)
     path = Path(workdir) / f'calibration_{fold.name.replace("@", "_")}'
-    robotino.write_recording([runs[k] for k in fold.calibration], path, model, gap=GAP)
-    params, result = calibrate(path, model, Path(workdir) / f'params_{fold.name.replace("@", "_")}')
+    if not (path / 'metadata.yaml').is_file():
+        robotino.write_recording([runs[k] for k in fold.calibration], path, model, gap=GAP)
+    params, result = calibrate(path, model, Path(workdir) / 'params' / fold.name.replace('@', '_'))
     return fold.name, params, {'samples': result.info['samples'], 'coverage': result.coverage,
                                'spread': residual_spread(result)}
 
@@ -201,6 +206,7 @@ def run_crossval(workdir, progress=print, workers=2, root=None):
         return None
     workdir = Path(workdir) / 'crossval'
     workdir.mkdir(parents=True, exist_ok=True)
+    (workdir / 'params').mkdir(exist_ok=True)
     runs = load_runs(root)
     max_current = load_model(robotino.PROFILE).drive.max_current
     cases = fault_free_cases(runs, root) + fault_cases(runs, max_current)

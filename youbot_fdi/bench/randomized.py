@@ -117,7 +117,7 @@ def calibration_drive(rng):
 def judged_drive(rng, mass, duration=RUN_SECONDS, fault=None, wheel=0, magnitude=1.0):
     """A drive wider than calibration: faster, aggressive or gentle, starts and stops, another
     floor (maybe changing), a payload (maybe put on or off while standing); a fault if given."""
-    aggressive = rng.random() < 0.5
+    aggressive = bool(rng.random() < 0.5)
     acceleration, turn = (rng.uniform(2.0, 6.0), rng.uniform(3.0, 8.0)) if aggressive else (0.6, 1.2)
     knots, twists = random_knots(rng, duration, 0.45, 1.2, acceleration, turn)
     floor = float(np.exp(rng.uniform(math.log(0.5), math.log(3.0)))) if rng.random() < 0.6 else 1.0
@@ -134,8 +134,17 @@ def judged_drive(rng, mass, duration=RUN_SECONDS, fault=None, wheel=0, magnitude
             payload_time = float(rng.choice(resting))
     offset = tuple(rng.uniform(-0.1, 0.1, 2))
     fault_time = float(rng.uniform(*FAULT_WINDOW)) if fault else math.inf
-    return plant.Drive(knots, twists, duration, floor, floor_after, floor_time, payload,
-                       payload_after, payload_time, offset, fault, wheel, fault_time, magnitude)
+    drive = plant.Drive(knots, twists, duration, floor, floor_after, floor_time, payload,
+                        payload_after, payload_time, offset, fault, wheel, fault_time, magnitude)
+    return drive, (('aggressive', aggressive), ('acceleration', round(float(acceleration), 2)))
+
+
+def conditions_of(drive):
+    """(name, value) pairs of a drive's floor and payload (for tracing alarms)."""
+    return (('floor', round(drive.floor, 2)), ('floor_after', round(drive.floor_after, 2)),
+            ('floor_time', round(drive.floor_time, 2)), ('payload', round(drive.payload, 1)),
+            ('payload_after', round(drive.payload_after, 1)),
+            ('payload_time', round(drive.payload_time, 2)))
 
 
 def _rest_times(knots, twists, duration):
@@ -161,6 +170,7 @@ class Run:
     onset: float = math.nan  # header stamp from which the fault can be seen [s]
     start: float = START_STAMP
     injected: float = math.nan  # header stamp of the injection (a runaway shows later) [s]
+    conditions: tuple = ()  # (name, value) of the drive: floor, payload, style (to trace alarms)
 
 
 def write(recording, path, names, storage='sqlite3'):
@@ -223,12 +233,12 @@ def run_suite(workdir, progress=print, workers=2, seed=0, plants=PLANTS,
                      f'plants ({slot + 1}/{len(slots)}) ...')
             wheels = rng.integers(0, plant.WHEELS, plants)
             if kind == 'calibration':
-                drives = [calibration_drive(rng) for _ in range(plants)]
+                drives, styles = [calibration_drive(rng) for _ in range(plants)], [()] * plants
             elif kind == 'fault_free':
-                drives = [judged_drive(rng, params.mass[p]) for p in range(plants)]
+                drives, styles = zip(*[judged_drive(rng, params.mass[p]) for p in range(plants)])
             else:
-                drives = [judged_drive(rng, params.mass[p], FAULT_RUN_SECONDS, fault[0], int(wheels[p]),
-                                       fault[1]) for p in range(plants)]
+                drives, styles = zip(*[judged_drive(rng, params.mass[p], FAULT_RUN_SECONDS, fault[0],
+                                                    int(wheels[p]), fault[1]) for p in range(plants)])
             recordings = plant.simulate(params, drives, seed=seed * 1000 + slot)
             paths = [str(workdir / f'plant{p:03d}_{slot}') for p in range(plants)]
             list(pool.map(_write, zip(recordings, paths), chunksize=4))
@@ -236,7 +246,8 @@ def run_suite(workdir, progress=print, workers=2, seed=0, plants=PLANTS,
                 runs.append(Run(p, kind, fault[2] if fault else '', paths[p], drive.duration,
                                 fault[0] if fault else None, names[drive.wheel] if fault else None,
                                 START_STAMP + recording.fault_visible if fault else math.nan,
-                                injected=START_STAMP + drive.fault_time if fault else math.nan))
+                                injected=START_STAMP + drive.fault_time if fault else math.nan,
+                                conditions=tuple(styles[p]) + conditions_of(drive)))
         calibration = [r for r in runs if r.kind == 'calibration']
         progress(f'randomized: identify on each plant\'s nominal drive ({plants}) ...')
         identified = dict(pool.map(_calibrate, [(r.plant, r.path, str(workdir)) for r in calibration]))

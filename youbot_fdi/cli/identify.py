@@ -8,6 +8,13 @@ from youbot_fdi.cli.status import DAMAGED
 NAME = 'identify'
 
 
+
+def _per_hour(rate):
+    """An alarm rate [1/h] for people: 'one in N h', or 'never' at 0."""
+    if rate <= 0.0:
+        return 'never'
+    return f'one in {1.0 / rate:.3g} h' if rate < 1.0 else f'{rate:.3g} per hour'
+
 def add_parser(subparsers):
     parser = subparsers.add_parser(
         NAME, help='identify model parameters from a nominal recording',
@@ -90,6 +97,14 @@ def run(args):
     print(f'  bounds: the {settings.bound_quantile:.0%} quantile of |r| on the operating point, '
           f'x{settings.bound_margin:g}; nominal samples inside: '
           + ', '.join(f'{family} {share:.2%}' for family, share in result.coverage.items()))
+    rates = result.info.get('false_alarm_rate')
+    if rates:
+        total = sum(r['per_hour'] for r in rates.values())
+        print(f'  expected false alarms (an upper bound, on driving like this recording; target '
+              f'{settings.false_alarm_target:g} per hour): '
+              + ', '.join(f'{test} {_per_hour(r["per_hour"])} at threshold {r["threshold"]:.3g}'
+                          for test, r in rates.items())
+              + f'; all tests: {_per_hour(total)}')
     print(f'  sample interval {1000 * result.fdi["sample_interval"]:.1f} ms (comm_loss after '
           f'{1000 * max(settings.comm_timeout, settings.comm_timeout_intervals * result.fdi["sample_interval"]):.0f} ms without data)')
     if args.plot:

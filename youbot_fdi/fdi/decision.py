@@ -5,7 +5,9 @@
    by the time it stands for, ``w_k = min(1, dt_k / evidence_interval)``: residuals are correlated
    over tens of milliseconds, so a faster sampled base gains no more evidence per second than a
    slower one (no new false alarms at 250 Hz), and no single sample counts for more than one
-   interval (none at 20 Hz); a residual alarms while ``g >= evidence_threshold`` and clears after
+   interval (none at 20 Hz); a residual alarms while ``g`` reaches its family's threshold
+   (``family_thresholds``: ``identify`` raises them to meet ``false_alarm_target`` on its
+   recording, ``fdi/alarm_rate.py``) and clears after
    ``release_time`` of excited samples below it (their time, counted the same way). A small
    persistent excess is found (it adds up), a single spike is not an alarm (it is capped and
    drains away). Torque and command-path evidence on half the wheels or more at once (half the
@@ -46,6 +48,7 @@ import json
 
 import numpy as np
 
+from youbot_fdi.errors import ConfigError
 from youbot_fdi.faults import FaultKind, LOAD_CHANGE, UNSEEN_OPERATING_POINT
 from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
@@ -147,6 +150,12 @@ class DecisionMaker:
         self.settings = settings
         self.n = len(self.wheel_names)
         self.signatures = self._signatures(residual_data)
+        #: the evidence each family needs to alarm (F, 1)
+        self._thresholds = np.asarray(settings.family_thresholds, dtype=float)[:, None]
+        if self._thresholds.shape != (len(FAMILIES), 1):
+            msg = (f'family_thresholds has {len(settings.family_thresholds)} values; one per '
+                   f'family is needed: {", ".join(FAMILIES)}')
+            raise ConfigError(msg)
         shape = (len(FAMILIES), self.n)
         self._evidence = np.zeros(shape)  # the magnitude CUSUMs
         self._shift = np.zeros((2, self.n))  # the torque shift CUSUMs, upward and downward
@@ -228,8 +237,7 @@ class DecisionMaker:
 
         The magnitude CUSUM of each residual, ``min(z, cap) - evidence_drift``; for the torque
         residuals also the CUSUMs of their shift, up and down, ``min(+-shift, cap) - shift_drift``
-        (held below ``SHIFT_CEILING`` thresholds), scaled so that ``shift_threshold`` counts as the
-        ``evidence_threshold``; the larger counts.
+        (held below ``SHIFT_CEILING`` thresholds). Judged in thresholds (:meth:`_judged`).
         """
         s = self.settings
         g = cusum(weight[:, None, None] * (np.minimum(z, s.evidence_cap) - s.evidence_drift),
@@ -242,13 +250,12 @@ class DecisionMaker:
         return self._judged(g, shifted)
 
     def _judged(self, magnitude, shift):
-        """The evidence judged against ``evidence_threshold`` (..., families, n): the magnitude
-        CUSUMs ``magnitude`` (..., families, n), the torque family's raised to its shift CUSUMs
-        ``shift`` (..., 2, n) scaled so that ``shift_threshold`` counts as the threshold."""
-        s = self.settings
-        judged = magnitude.copy()
-        judged[..., TORQUE, :] = np.maximum(judged[..., TORQUE, :], shift.max(axis=-2)
-                                            * (s.evidence_threshold / s.shift_threshold))
+        """The evidence in thresholds (..., families, n), an alarm from 1: the magnitude CUSUMs
+        ``magnitude`` (..., families, n) over their family's threshold, the torque family's
+        raised to its shift CUSUMs ``shift`` (..., 2, n) over ``shift_threshold``."""
+        judged = magnitude / self._thresholds
+        judged[..., TORQUE, :] = np.maximum(judged[..., TORQUE, :],
+                                            shift.max(axis=-2) / self.settings.shift_threshold)
         return judged
 
     def torque_shift(self, residual, bound, stamps, hold, fresh):
@@ -341,7 +348,7 @@ class DecisionMaker:
         ``release_time``, and otherwise kept. So the alarm after row k is decided by the latest row
         that set or cleared it.
         """
-        threshold = self.settings.evidence_threshold
+        threshold = 1.0  # the evidence is judged in thresholds
         before = self._judged(self._evidence, self._shift)
         weight = self.sample_weights(stamps)
         step = weight * self.settings.evidence_interval  # [s] the time each row counts for
@@ -380,7 +387,7 @@ class DecisionMaker:
           a clear one is (a second fault).
         """
         s = self.settings
-        level = SHARED_SHARE * s.evidence_threshold
+        level = SHARED_SHARE  # of the threshold
         up = evidence >= level
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)

@@ -36,8 +36,10 @@ import scipy.sparse
 
 from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
+from youbot_fdi.fdi import alarm_rate
 from youbot_fdi.fdi.learned import fit_torque_correction, inertial_feature
-from youbot_fdi.fdi.residuals import BOUND_TERMS, bound_weights, ResidualGenerator, ResidualSpread
+from youbot_fdi.fdi.residuals import (BOUND_TERMS, bound_weights, FAMILIES, ResidualEvaluator,
+                                      ResidualGenerator, ResidualSpread)
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.dynamics import rolling_share
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
@@ -56,6 +58,9 @@ QUANTILE_ROWS = 6000  # rows the quantile regression uses at most (a random, see
 #: The range of a bound feature calibration covered: this quantile of its values, and the same for
 #: the largest wheel torque measured (the whole range: it is what was seen).
 RANGE_QUANTILE = 1.0
+#: How fast the base drove: these quantiles of its wheel speeds' norm while it moved (a start's or
+#: a stop's few samples are not a speed calibration drove at).
+SPEED_QUANTILES = (0.05, 0.95)
 #: The searches over the input delay and the firmware gains simulate the command path many
 #: times: they run on the recording decimated to at most SEARCH_RATE and SEARCH_SAMPLES samples
 #: (the discretisation is exact for any interval; every command is kept). The fits of the
@@ -376,6 +381,16 @@ def fit_bounds(batch, settings):
     return learned, coverage
 
 
+def calibrated_speed_range(arrays, settings):
+    """[low, high] of the norm of the wheel speeds [rad/s] while the base moved (faster than
+    ``stuck_speed`` on some wheel), :data:`SPEED_QUANTILES`."""
+    norm = np.linalg.norm(arrays.velocity, axis=1)
+    moving = np.abs(arrays.velocity).max(axis=1) > settings.stuck_speed
+    if moving.sum() < MIN_SAMPLES:
+        return [0.0, math.inf]
+    return [float(q) for q in np.quantile(norm[moving], SPEED_QUANTILES)]
+
+
 def speed_noise(arrays):
     """The speed reading's noise [rad/s]: the robust spread of its second differences over the
     samples, sqrt(6) times the noise of independent errors (the motion's own curvature over two
@@ -383,6 +398,81 @@ def speed_noise(arrays):
     second = np.diff(arrays.velocity, n=2, axis=0)
     mad = np.median(np.abs(second - np.median(second, axis=0)))
     return float(1.4826 * mad / math.sqrt(6.0))
+
+
+#: The tests whose false-alarm rate identify states and meets: each evidence family, and the
+#: torque residual's shift from its level; the target is shared among them equally.
+RATE_TESTS = (*FAMILIES, 'torque shift')
+
+
+def held_out_scores(model, batch, settings):
+    """Scores |r| / u (N, families, n) of a nominal recording's residuals ``batch`` (from the
+    generator run with ``settings``), each half judged with bounds fitted on the other half (the
+    part of a bound that is not learned, its allowances, kept); and the held-out torque bounds."""
+    rows = len(batch)
+    half = rows // 2
+    full = ResidualEvaluator(model, settings)
+    scores = np.zeros((rows, len(FAMILIES), model.dynamics.n_wheels))
+    torque_bound = np.ones((rows, model.dynamics.n_wheels))
+    for fit, judge in ((slice(half, rows), slice(0, half)), (slice(0, half), slice(half, rows))):
+        learned, _ = fit_bounds(batch.select(fit), settings)
+        held = ResidualEvaluator(model, replace(settings, **learned))
+        part = batch.select(judge)
+        for k, family in enumerate(FAMILIES):
+            if family == 'command':  # by mode: the command bound, or the effort bound
+                velocity = part.velocity_mode[:, None]
+                was = np.where(velocity, full.bound('command', part.features['command']),
+                               full.bound('effort', part.features['effort']))
+                now = np.where(velocity, held.bound('command', part.features['command']),
+                               held.bound('effort', part.features['effort']))
+            else:
+                was, now = full.bound(family, part.features[family]), held.bound(family, part.features[family])
+            settling = part.bounds[family] == 1.0  # the command path while it settles: not judged
+            bound = np.where(settling, 1.0, part.bounds[family] - was + now)
+            value = np.where(settling, 0.0, part.values[family])
+            scores[judge, k] = np.abs(value) / bound
+            if family == 'torque':
+                torque_bound[judge] = bound
+    scores[~np.isfinite(scores)] = 0.0
+    return scores, torque_bound
+
+
+def false_alarm_rates(model, batch, settings):
+    """Per test of :data:`RATE_TESTS`, the :class:`~youbot_fdi.fdi.alarm_rate.RateEstimate` of
+    its CUSUM on this nominal recording's held-out scores (:func:`held_out_scores`), with the
+    decision's increments (sample weights, cap, drift)."""
+    from youbot_fdi.fdi.decision import DecisionMaker
+    from youbot_fdi.fdi.pipeline import load_residual_data
+    scores, torque_bound = held_out_scores(model, batch, settings)
+    decision = DecisionMaker(model.wheel_names, settings, load_residual_data(settings.residual_file or None,
+                                                                              model.wheel_names))
+    weight = decision.sample_weights(batch.stamp)[:, None]
+    interval = float(np.median(np.diff(batch.stamp))) if len(batch) > 1 else settings.evidence_interval
+    estimates = {}
+    for k, family in enumerate(FAMILIES):
+        z = scores[:, k]
+        estimates[family] = alarm_rate.estimate(
+            weight * (np.minimum(z, settings.evidence_cap) - settings.evidence_drift), z, interval)
+    breaking = decision._breaking_away(batch.velocity, batch.stamp)
+    shift = decision.torque_shift(batch.values['torque'], torque_bound, batch.stamp,
+                                  np.zeros(model.dynamics.n_wheels, dtype=bool), breaking)
+    capped = np.clip(shift, -settings.evidence_cap, settings.evidence_cap)
+    both = np.concatenate([capped, -capped], axis=1)
+    estimates['torque shift'] = alarm_rate.estimate(weight * (both - settings.shift_drift), both, interval)
+    return estimates
+
+
+def rate_thresholds(estimates, settings):
+    """The thresholds that meet ``false_alarm_target`` (shared equally among the tests), never
+    below the configured ones: ({setting: value}, {test: (threshold, alarms per hour)})."""
+    share = settings.false_alarm_target / len(RATE_TESTS)
+    thresholds = []
+    for k, family in enumerate(FAMILIES):
+        thresholds.append(max(settings.family_thresholds[k], estimates[family].threshold(share)))
+    shift = max(settings.shift_threshold, estimates['torque shift'].threshold(share))
+    chosen = dict(zip(FAMILIES, thresholds), **{'torque shift': shift})
+    stated = {test: (chosen[test], estimates[test].rate(chosen[test])) for test in RATE_TESTS}
+    return {'family_thresholds': [float(t) for t in thresholds], 'shift_threshold': float(shift)}, stated
 
 
 def contact_share_floor(model, arrays, settings):
@@ -476,6 +566,10 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
         settings = replace(settings, input_delay=delay)
     physics = run_generator(model, arrays, settings)  # the residuals both fits below start from
     fdi, coverage = fit_bounds(physics, settings)
+    thresholds, stated = rate_thresholds(false_alarm_rates(model, physics, settings), settings)
+    fdi.update(thresholds)
+    info['false_alarm_rate'] = {test: {'threshold': round(float(t), 4), 'per_hour': float(f'{r:.3g}')}
+                                for test, (t, r) in stated.items()}
     learned, notes, spread = (learn_corrections(model, arrays, settings, physics) if learn
                               else (None, [], None))
     if learned is not None:
@@ -484,6 +578,7 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
 
     fdi['sample_interval'] = interval
     fdi['speed_sigma'] = settings.speed_sigma
+    fdi['calibrated_speed_range'] = calibrated_speed_range(arrays, settings)
     fdi['calibrated_effort'] = float(np.quantile(np.abs(arrays.torque[np.isfinite(arrays.torque)]),
                                                  RANGE_QUANTILE)) if np.isfinite(arrays.torque).any() \
         else math.inf

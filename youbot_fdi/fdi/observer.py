@@ -29,6 +29,7 @@ its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerat
 :meth:`ModelObserver.update` is the same computation for one sample (the live node).
 """
 from dataclasses import dataclass, replace
+import math
 
 import numpy as np
 
@@ -41,6 +42,8 @@ from youbot_fdi.structure.generate import wheel_suffix
 #: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
 STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
+#: The slowest calibrated speed the extrapolation of friction divides by [rad/s].
+MIN_CALIBRATED_SPEED = 1e-3
 #: The share of the largest calibrated torque from which the command path is not predicted [-].
 CALIBRATED_SHARE = 0.95
 #: Commands kept while no joint state arrives (a bound on memory, far above any input delay).
@@ -227,6 +230,22 @@ class ModelObserver:
             return level, level, np.zeros_like(level)
         share = dyn.rolling_shares(velocity)
         return level * share, level, level * np.maximum(0.0, self.settings.contact_share_floor - share)
+
+    def _speed_extrapolation(self, mean_speed):
+        """Friction [N·m] (..., n) the model may miss where the base drives faster or slower than
+        calibration (``calibrated_speed_range`` of the wheel speeds' norm): at one speed, viscous
+        and Coulomb friction cannot be told apart, and the truth may lie anywhere between the two
+        extrapolations, all-Coulomb (the friction stays) and all-viscous (it scales with the
+        speed). So, per wheel, the friction level at the nearest calibrated speed (the same
+        direction) times the relative distance from it; 0 within the range."""
+        low, high = self.settings.calibrated_speed_range
+        if low <= 0.0 and math.isinf(high):
+            return 0.0
+        speed = np.linalg.norm(mean_speed, axis=-1, keepdims=True)
+        near = np.clip(speed, low, high)
+        scaled = mean_speed * np.divide(near, speed, out=np.ones_like(speed), where=speed > 0.0)
+        level = np.abs(self.friction * scaled + self._coulomb(scaled)[1])
+        return level * np.abs(speed - near) / np.maximum(near, MIN_CALIBRATED_SPEED)
 
     def _loop_step(self, steps):
         """Exact unsaturated map of ``steps`` firmware periods of the PI loop.
@@ -424,6 +443,7 @@ class ModelObserver:
         mean_speed = 0.5 * (velocity + prev_velocity)
         coulomb, level, unseen = self._coulomb(mean_speed)
         friction = self.friction * mean_speed + level
+        unseen = unseen + self._speed_extrapolation(mean_speed)
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity))
         outside = np.zeros(np.shape(velocity)[:-1])
         if self.correction is not None:  # what the physics misses (see fdi/learned.py)

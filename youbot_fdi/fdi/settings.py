@@ -72,6 +72,10 @@ class FdiSettings:
     command_feature_range: tuple = (INF,) * 4
     effort_feature_range: tuple = (INF,) * 2
     encoder_feature_range: tuple = (INF,) * 4
+    #: how fast the base drove in calibration: the range of the norm of its wheel speeds while it
+    #: moved [rad/s] (identify records it): beyond it, slower or faster, friction is extrapolated
+    #: and the bounds allow the gap between its all-Coulomb and all-viscous extrapolations
+    calibrated_speed_range: tuple = (0.0, INF)
     #: the largest wheel torque calibration measured [N·m] (inf: none): beyond it the firmware's
     #: current limit may act where calibration never saw it, so the command path does not predict
     calibrated_effort: float = unbounded(INF)
@@ -82,7 +86,11 @@ class FdiSettings:
     # decision: evidence g_k = max(0, g_{k-1} + min(|r|/u, cap) - drift), alarm at g >= threshold
     evidence_drift: float = 1.0
     evidence_cap: float = 3.0
-    evidence_threshold: float = 3.0
+    #: the evidence each family needs to alarm (torque, observer, command, encoder); identify
+    #: raises them where its recording says they would alarm more often than false_alarm_target
+    family_thresholds: tuple = (3.0, 3.0, 3.0, 3.0)
+    #: the false alarms per hour of nominal driving identify sets the thresholds for [1/h]
+    false_alarm_target: float = 0.01
     # the torque residual's shift from its recent level (a fault is faster than friction drifts):
     # g_k = max(0, g_{k-1} + min(+-shift/u, cap) - shift_drift), alarm at g >= shift_threshold
     shift_time_constant: float = 3.0  # memory of the recent level [s]
@@ -127,7 +135,7 @@ class FdiSettings:
                 problems.append(name)
         for name in ('observer_time_constant', 'comm_timeout', 'command_timeout', 'release_time',
                      'evidence_interval',
-                     'classification_window', 'load_time_constant', 'evidence_threshold',
+                     'classification_window', 'load_time_constant', 'false_alarm_target',
                      'evidence_drift', 'shared_window', 'second_fault_score', 'shift_time_constant',
                      'shift_threshold'):
             if getattr(self, name) <= 0:
