@@ -366,7 +366,7 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     excited = rng.random((rows, 4)) < 0.7
     stamps = np.cumsum(rng.uniform(0.002, 0.4, rows))  # some closer than evidence_interval
     breaking = rng.random(rows) < 0.15
-    got = batched._alarms(z, excited, stamps, torque, bound, breaking)
+    got = batched._alarms(z, excited, stamps, torque, bound, bound, breaking)  # the bound as scale
     s = settings_
     threshold = s.family_thresholds[0]  # the same for every family by default
     level_share = 0.5 * threshold

@@ -262,7 +262,7 @@ def test_the_load_factor_is_the_part_every_wheel_shares(model):
     generator = ResidualGenerator(model, FdiSettings(torque_sigma=0.01))
     friction = np.array([0.2, 0.2, 0.2, 0.2])
     both = np.concatenate([[1.5, 1.3, 1.4, 1.6] * friction, friction])
-    assert float(generator.observer._load_factor(both, 1.0)[0]) == pytest.approx(1.3)
+    assert float(generator.observer._load_factor(both, 1.0)[0]) == pytest.approx(1.45)  # the median
     one = np.concatenate([[2.0, 1.0, 1.0, 1.0] * friction, friction])
     assert float(generator.observer._load_factor(one, 1.0)[0]) == pytest.approx(1.0)  # one wheel: a fault
 
@@ -486,7 +486,9 @@ def _batch_of(frame):
     from youbot_fdi.fdi.residuals import ResidualBatch, ROW_ARRAYS
     rows = {name: np.asarray([getattr(frame, name) if name != 'velocity_mode'
                               else frame.command_mode == 'velocity'])
-            for name in ROW_ARRAYS if name != 'command_speed'}
+            for name in ROW_ARRAYS if name not in ('command_speed', 'torque_scale')}
+    rows['torque_scale'] = (frame.bounds['torque'] if frame.torque_scale is None
+                            else frame.torque_scale)[None]
     return ResidualBatch(values={f: v[None] for f, v in frame.values.items()},
                          bounds={f: b[None] for f, b in frame.bounds.items()},
                          command_speed=frame.velocity[None], **rows)

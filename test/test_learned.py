@@ -87,7 +87,7 @@ def test_noise_alone_learns_nothing():
     acceleration = rng.normal(scale=20.0, size=speed.shape)
     correction, notes = fit_torque_correction(speed, acceleration, rng.normal(scale=0.02, size=speed.shape),
                                               SCALE, 0.01)
-    assert correction is None and 'without the learned correction' in notes[-1]
+    assert correction is None and 'physics only' in notes[-1]
 
 
 def test_a_friction_only_file_reads_with_no_inertial_part():

@@ -287,9 +287,11 @@ def simulate(params, drives, seed=0):
         coulomb = np.where(active & has['friction'][:, None], params.coulomb * magnitude[:, None],
                            params.coulomb)
         direction = np.tanh(speed / COULOMB_SPEED)
-        bearing = viscous * speed + coulomb * direction * (1.0 + params.asymmetry * direction)
-        wheel_torque = (gain * torque_per_amp * current - bearing - rolling - RADIUS * force_x)
-        speed = speed + STEP * wheel_torque / params.wheel_inertia[:, None]
+        coulomb_torque = coulomb * direction * (1.0 + params.asymmetry * direction)
+        wheel_torque = (gain * torque_per_amp * current - coulomb_torque - rolling - RADIUS * force_x)
+        # The bearing's viscous part implicitly: stable for any friction (a blocked wheel's too).
+        inertia = params.wheel_inertia[:, None]
+        speed = (speed + STEP * wheel_torque / inertia) / (1.0 + STEP * viscous / inertia)
         angle = angle + STEP * speed
 
         # The base (base-frame velocities: the rotating frame's terms).

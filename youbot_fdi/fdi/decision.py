@@ -258,11 +258,12 @@ class DecisionMaker:
                                             shift.max(axis=-2) / self.settings.shift_threshold)
         return judged
 
-    def torque_shift(self, residual, bound, stamps, hold, fresh):
-        """Each wheel's torque residual's departure from its recent level, in bounds: ``(r_k -
-        m_{k-1}) / u_k`` (N, n), from the torque residuals ``residual`` and their bounds ``bound``
-        (N, n) [N·m] at ``stamps`` (N,) [s] (0 where it does not count). Leaves the state after the
-        last row.
+    def torque_shift(self, residual, bound, scale, stamps, hold, fresh):
+        """Each wheel's torque residual's departure from its recent level, in its scale: ``(r_k -
+        m_{k-1}) / s_k`` (N, n), from the torque residuals ``residual``, their bounds ``bound`` and
+        scales ``scale`` (the bound without its allowances for steady biases, which cancel in a
+        departure from the level) (N, n) [N·m] at ``stamps`` (N,) [s] (0 where it does not count).
+        Leaves the state after the last row.
 
         The level m is the exponential average over ``shift_time_constant`` of the residual
         clipped to its bound (an excess beyond it is the magnitude CUSUM's, and a spike moves the
@@ -293,16 +294,17 @@ class DecisionMaker:
             memory[:, None] * precision * (judged & ~hold), np.clip(residual, -bound, bound),
             keep=steady | hold)
         known = judged & (weight_before >= SHIFT_KNOWN_LEVEL)
-        shift = np.divide(residual - level_before, bound, out=np.zeros_like(level_before),
-                          where=known)
+        shift = np.divide(residual - level_before, scale, out=np.zeros_like(level_before),
+                          where=known & (scale > 0.0))
         self._pass['stamps'] = stamps
         self._last_stamp = stamps[-1]
         return shift
 
-    def _alarms(self, z, excited, stamps, torque, torque_bound, breaking_away):
+    def _alarms(self, z, excited, stamps, torque, torque_bound, torque_scale, breaking_away):
         """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n),
         ``excited`` (N, n), stamps (N,) [s] and the torque residuals ``torque`` with their bounds
-        ``torque_bound`` (N, n) [N·m], continuing the counters; leaves the state after the last
+        ``torque_bound`` and shift scales ``torque_scale`` (N, n) [N·m], continuing the counters;
+        leaves the state after the last
         row. In the rows ``breaking_away`` (N,) the torque family adds no evidence (score 0) and
         its recent levels start afresh (:meth:`torque_shift`).
 
@@ -318,7 +320,8 @@ class DecisionMaker:
             hold = self.alarm[TORQUE].copy()
             part = slice(start, rows)
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
-                                         torque_bound[part], hold, breaking_away[part])
+                                         torque_bound[part], torque_scale[part], hold,
+                                         breaking_away[part])
             changes = np.flatnonzero((alarm[:-1, TORQUE] != hold).any(axis=1))
             if not len(changes):
                 parts.append(alarm)
@@ -340,7 +343,7 @@ class DecisionMaker:
         self._rise[SHARED_FAMILIES] = states['rise'][row]
         self._below, self.alarm = states['below'][row], states['alarm'][row]
 
-    def _alarms_holding(self, z, excited, stamps, torque, torque_bound, hold, fresh):
+    def _alarms_holding(self, z, excited, stamps, torque, torque_bound, torque_scale, hold, fresh):
         """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout.
 
         Sequentially: an alarm is set while the evidence is at the threshold, cleared once
@@ -352,8 +355,8 @@ class DecisionMaker:
         before = self._judged(self._evidence, self._shift)
         weight = self.sample_weights(stamps)
         step = weight * self.settings.evidence_interval  # [s] the time each row counts for
-        evidence = self.evidence(z, self.torque_shift(torque, torque_bound, stamps, hold, fresh),
-                                 weight)
+        evidence = self.evidence(z, self.torque_shift(torque, torque_bound, torque_scale, stamps,
+                                                      hold, fresh), weight)
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps)
@@ -601,9 +604,10 @@ class DecisionMaker:
     def _update(self, frame):
         """The raw events of one residual frame (before the lifecycle)."""
         z = frame.scores()
+        scale = frame.bounds['torque'] if frame.torque_scale is None else frame.torque_scale
         alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None],
                              [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None],
-                             self._breaking_away(frame.velocity[None], [frame.stamp]))
+                             scale[None], self._breaking_away(frame.velocity[None], [frame.stamp]))
         self.samples += 1
         self._remember(frame.values['torque'][None], z[TORQUE][None], frame.torque[None],
                        frame.velocity[None], np.array([frame.stamp]))
@@ -629,7 +633,7 @@ class DecisionMaker:
             return []
         z = batch.scores()
         alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp,
-                             batch.values['torque'], batch.bounds['torque'],
+                             batch.values['torque'], batch.bounds['torque'], batch.torque_scale,
                              self._breaking_away(batch.velocity, batch.stamp))
         capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen, batch.silent))
         frozen = self.settings.frozen_samples

@@ -408,12 +408,14 @@ RATE_TESTS = (*FAMILIES, 'torque shift')
 def held_out_scores(model, batch, settings):
     """Scores |r| / u (N, families, n) of a nominal recording's residuals ``batch`` (from the
     generator run with ``settings``), each half judged with bounds fitted on the other half (the
-    part of a bound that is not learned, its allowances, kept); and the held-out torque bounds."""
+    part of a bound that is not learned, its allowances, kept); and the held-out torque bounds
+    with and without those allowances (the scale of the torque shift)."""
     rows = len(batch)
     half = rows // 2
     full = ResidualEvaluator(model, settings)
     scores = np.zeros((rows, len(FAMILIES), model.dynamics.n_wheels))
     torque_bound = np.ones((rows, model.dynamics.n_wheels))
+    torque_scale = np.ones((rows, model.dynamics.n_wheels))
     for fit, judge in ((slice(half, rows), slice(0, half)), (slice(0, half), slice(half, rows))):
         learned, _ = fit_bounds(batch.select(fit), settings)
         held = ResidualEvaluator(model, replace(settings, **learned))
@@ -432,9 +434,9 @@ def held_out_scores(model, batch, settings):
             value = np.where(settling, 0.0, part.values[family])
             scores[judge, k] = np.abs(value) / bound
             if family == 'torque':
-                torque_bound[judge] = bound
+                torque_bound[judge], torque_scale[judge] = bound, now
     scores[~np.isfinite(scores)] = 0.0
-    return scores, torque_bound
+    return scores, torque_bound, torque_scale
 
 
 def false_alarm_rates(model, batch, settings):
@@ -443,7 +445,7 @@ def false_alarm_rates(model, batch, settings):
     decision's increments (sample weights, cap, drift)."""
     from youbot_fdi.fdi.decision import DecisionMaker
     from youbot_fdi.fdi.pipeline import load_residual_data
-    scores, torque_bound = held_out_scores(model, batch, settings)
+    scores, torque_bound, torque_scale = held_out_scores(model, batch, settings)
     decision = DecisionMaker(model.wheel_names, settings, load_residual_data(settings.residual_file or None,
                                                                               model.wheel_names))
     weight = decision.sample_weights(batch.stamp)[:, None]
@@ -454,7 +456,7 @@ def false_alarm_rates(model, batch, settings):
         estimates[family] = alarm_rate.estimate(
             weight * (np.minimum(z, settings.evidence_cap) - settings.evidence_drift), z, interval)
     breaking = decision._breaking_away(batch.velocity, batch.stamp)
-    shift = decision.torque_shift(batch.values['torque'], torque_bound, batch.stamp,
+    shift = decision.torque_shift(batch.values['torque'], torque_bound, torque_scale, batch.stamp,
                                   np.zeros(model.dynamics.n_wheels, dtype=bool), breaking)
     capped = np.clip(shift, -settings.evidence_cap, settings.evidence_cap)
     both = np.concatenate([capped, -capped], axis=1)

@@ -42,6 +42,9 @@ from youbot_fdi.structure.generate import wheel_suffix
 #: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
 STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
+#: The fewest voting wheels whose median is the load factor (a median of three is moved by no
+#: single wheel).
+MIN_LOAD_VOTES = 3
 #: The slowest calibrated speed the extrapolation of friction divides by [rad/s].
 MIN_CALIBRATED_SPEED = 1e-3
 #: The share of the largest calibrated torque from which the command path is not predicted [-].
@@ -474,20 +477,21 @@ class ModelObserver:
 
     def _load_factor(self, smoothed, previous):
         """The platform-wide load factor from the smoothed (load part; friction) (..., 2n): the
-        part of the departure that every voting wheel shares (all heavier: the least heavy, all
-        lighter: the least light, else 1), at any size: a floor or payload three times the
-        calibration's is shared as much as one ten percent off (one wheel alone cannot move it
-        past the others, whatever its size); ``previous`` where no wheel votes."""
+        median of the voting wheels' ratios, at any size (a floor or payload three times the
+        calibration's is shared as much as one ten percent off). A median of at least
+        ``MIN_LOAD_VOTES`` wheels is moved by no single wheel (a fault stays that wheel's), and
+        it follows what most wheels share where they do not all change alike (a floor that
+        triples the rolling wheels' friction and leaves a sliding one's); ``previous`` where
+        fewer wheels vote."""
         n = self.n
         load, friction = smoothed[..., :n], smoothed[..., n:]
         votes = np.abs(friction) >= self.settings.torque_sigma
-        ratio = load / np.where(votes, friction, 1.0)
-        heavier = np.all(~votes | (ratio > 1.0), axis=-1)
-        lighter = np.all(~votes | (ratio < 1.0), axis=-1)
-        shared = np.where(heavier, np.min(np.where(votes, ratio, np.inf), axis=-1),
-                          np.where(lighter, np.max(np.where(votes, ratio, -np.inf), axis=-1), 1.0))
+        ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
+        voted = np.count_nonzero(votes, axis=-1) >= min(MIN_LOAD_VOTES, n)
+        with np.errstate(all='ignore'):
+            shared = np.nanmedian(np.where(voted[..., None], ratio, 1.0), axis=-1)
         # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
-        return np.maximum(shared, 0.0), votes.any(axis=-1)
+        return np.maximum(shared, 0.0), voted
 
     def _smoothing(self, step):
         """Per-row weight of the past in the load factor's smoothing (``load_time_constant``)."""

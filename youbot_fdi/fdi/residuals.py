@@ -50,7 +50,8 @@ FAMILIES = ('torque', 'observer', 'command', 'encoder')
 #: Signals a frame carries besides its residuals: (label prefix, attribute).
 SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
            ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'),
-           ('position_frozen', 'position_frozen'), ('silent', 'silent'))
+           ('position_frozen', 'position_frozen'), ('silent', 'silent'),
+           ('shift_scale', 'torque_scale'))
 #: Each bound is linear in its operating-point features: u = sum_j settings[name_j] * feature_j.
 #: Per bound, the settings that weigh its features, in feature order (``identify`` fits them by
 #: quantile regression on a nominal recording). ``effort`` is the command family in current mode.
@@ -130,6 +131,10 @@ class ResidualFrame:
     load_factor: float = 1.0  # the platform-wide friction/load condition (1: as identified) [-]
     #: wheels outside the learned correction's calibrated range (bit mask, see Prediction)
     outside_calibration: float = 0.0
+    #: the torque bound without its allowances for steady biases (a floor, a load, friction at
+    #: speeds calibration did not see) [N·m]: the scale of the torque residual's shift, in which
+    #: a steady bias cancels (None: the bound)
+    torque_scale: np.ndarray = None
 
     def names(self, wheel_names):
         """Residual names in family-major order, e.g. ``torque_fl``."""
@@ -193,7 +198,7 @@ class ResidualFrame:
                    command=signals['command'],
                    frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int),
                    position_frozen=signals['position_frozen'].astype(int),
-                   silent=signals['silent'],
+                   silent=signals['silent'], torque_scale=signals['torque_scale'],
                    load_factor=float(values[index['load_factor']]),
                    outside_calibration=float(values[index['outside_calibration']]))
 
@@ -203,7 +208,8 @@ class ResidualFrame:
 SCALAR_SIGNALS = ('command_mode', 'load_factor', 'outside_calibration')
 #: The per-row arrays of a ResidualBatch besides ``values`` and ``bounds``.
 ROW_ARRAYS = ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen', 'effort_frozen',
-              'position_frozen', 'silent', 'load_factor', 'command_speed', 'outside_calibration')
+              'position_frozen', 'silent', 'load_factor', 'command_speed', 'outside_calibration',
+              'torque_scale')
 
 
 @dataclass(frozen=True)
@@ -228,6 +234,7 @@ class ResidualBatch:
     load_factor: np.ndarray
     command_speed: np.ndarray
     outside_calibration: np.ndarray  # (N,) wheels outside the learned range (bit mask)
+    torque_scale: np.ndarray  # (N, n) as in ResidualFrame
     features: dict = None
 
     def __len__(self):
@@ -241,6 +248,7 @@ class ResidualBatch:
             torque=self.torque[k], command_mode=VELOCITY if self.velocity_mode[k] else 'effort',
             command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k],
             position_frozen=self.position_frozen[k], silent=self.silent[k],
+            torque_scale=self.torque_scale[k],
             load_factor=float(self.load_factor[k]),
             outside_calibration=float(self.outside_calibration[k]))
 
@@ -357,7 +365,7 @@ class ResidualEvaluator:
         return _batch(joints.stamp, nan, np.ones((rows, n)), nan, np.ones((rows, n)), nan,
                       np.ones((rows, n)), nan, np.ones((rows, n)), self.signs * joints.velocity,
                       nan, np.ones(rows, dtype=bool), nan, *counters, silent,
-                      np.full(rows, np.nan), nan, np.zeros(rows), features)
+                      np.full(rows, np.nan), nan, np.zeros(rows), np.ones((rows, n)), features)
 
     def missing(self, sample):
         """:meth:`missing_batch` for one sample (:class:`~youbot_fdi.samples.JointSample`): a
@@ -461,9 +469,11 @@ class ResidualEvaluator:
         torque_r, torque_f, torque_a = self._torque_terms(
             torque, last_torque, velocity, last_velocity, p.explained, p.friction, p.unseen_friction,
             p.load_factor, dt)
+        torque_u = self.bound('torque', torque_f)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.velocity_mode, stamp - self._started < s.startup_time, p.unseen_friction, dt)
+            p.velocity_mode, stamp - self._started < s.startup_time, p.load_factor * p.unseen_friction,
+            dt)
         mean_speed = 0.5 * (velocity + last_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, last_position, mean_speed,
                                                    velocity - last_velocity, dt)
@@ -485,13 +495,13 @@ class ResidualEvaluator:
             stamp=stamp,
             values={'torque': torque_r, 'observer': velocity - p.from_currents, 'command': command_r,
                     'encoder': encoder_r},
-            bounds={'torque': self.bound('torque', torque_f) + torque_a,
+            bounds={'torque': torque_u + torque_a,
                     'observer': self.bound('observer', observer_f),
                     'command': command_u, 'encoder': self.bound('encoder', encoder_f)},
             velocity=velocity, torque=torque, command_mode=VELOCITY if p.velocity_mode else 'effort',
             command=p.commanded, frozen=self._frozen, effort_frozen=self._effort_frozen,
             position_frozen=self._position_frozen, silent=np.zeros(self.n), load_factor=p.load_factor,
-            outside_calibration=outside)
+            outside_calibration=outside, torque_scale=torque_u)
 
     def update_batch(self, joints, predictions):
         """Residuals of a block of samples (:class:`~youbot_fdi.samples.JointBatch`) and their
@@ -503,7 +513,7 @@ class ResidualEvaluator:
         if rows == 0:
             empty = np.empty((0, n))
             return _batch(joints.stamp, *(empty,) * 10, p.velocity_mode, empty,
-                          *(empty.astype(int),) * 3, empty, np.empty(0), empty, np.empty(0), {})
+                          *(empty.astype(int),) * 3, empty, np.empty(0), empty, np.empty(0), empty, {})
         stamp = joints.stamp
         position, velocity, torque = (self.signs * a for a in
                                       (joints.position, joints.velocity, joints.effort))
@@ -527,7 +537,7 @@ class ResidualEvaluator:
         started = last_true_value(restart, stamp, self._started)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.velocity_mode[:, None], (stamp - started < s.startup_time)[:, None], p.unseen_friction,
+            p.velocity_mode[:, None], (stamp - started < s.startup_time)[:, None], load * p.unseen_friction,
             step)
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
@@ -552,11 +562,13 @@ class ResidualEvaluator:
                                    self.beyond_calibration({'effort': effort_f}))
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
-        batch = _batch(stamp, torque_r, self.bound('torque', torque_f) + torque_a,
+        torque_u = self.bound('torque', torque_f)
+        batch = _batch(stamp, torque_r, torque_u + torque_a,
                        velocity - p.from_currents, self.bound('observer', observer_f), command_r,
                        command_u, encoder_r, self.bound('encoder', encoder_f), velocity, torque,
                        p.velocity_mode, p.commanded, frozen, effort_frozen, position_frozen,
-                       np.zeros((rows, n)), p.load_factor, p.from_commands, outside, features)
+                       np.zeros((rows, n)), p.load_factor, p.from_commands, outside, torque_u,
+                       features)
         return batch.select(~restart) if restart.any() else batch
 
 
@@ -591,12 +603,13 @@ class ResidualSpread:
 
 def _batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u, encoder_r,
            encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen,
-           position_frozen, silent, load_factor, command_speed, outside_calibration, features):
+           position_frozen, silent, load_factor, command_speed, outside_calibration, torque_scale,
+           features):
     values = dict(zip(FAMILIES, (torque_r, observer_r, command_r, encoder_r)))
     bounds = dict(zip(FAMILIES, (torque_u, observer_u, command_u, encoder_u)))
     return ResidualBatch(stamp, values, bounds, velocity, torque, velocity_mode, target, frozen,
                          effort_frozen, position_frozen, silent, load_factor, command_speed,
-                         outside_calibration, features)
+                         outside_calibration, torque_scale, features)
 
 
 class ResidualGenerator:
