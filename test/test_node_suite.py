@@ -119,7 +119,7 @@ def test_reset_clears_latched_faults_and_says_what(harness):
                                       LATCHED_QOS)
     latched = FaultEvent(100.0, 'ERROR', 'wheel_joint_fl', 'stuck', ('torque_fl',), 'test')
     decision.decision._transition('wheel_joint_fl', 'ERROR', 'stuck', 100.0)
-    decision.emit([latched])
+    decision.emit(decision.decision.lifecycle.feed([latched], [100.0]))  # published, as the decision would
     client = harness.probe.create_client(Trigger, '/decision/reset')
     assert client.wait_for_service(timeout_sec=10.0)
     future = client.call_async(Trigger.Request())
@@ -138,8 +138,8 @@ def test_parameters_are_read_only_and_validated_at_start(harness):
     decision = harness.add(DecisionNode(context=harness.context))
     result = decision.set_parameters([Parameter('torque_sigma', value=0.5)])[0]
     assert not result.successful  # read-only: refused, not silently ignored
-    with pytest.raises(ConfigError, match='release'):
-        DecisionNode(context=harness.context, parameter_overrides=[Parameter('release', value=0)])
+    with pytest.raises(ConfigError, match='release_time'):
+        DecisionNode(context=harness.context, parameter_overrides=[Parameter('release_time', value=0.0)])
 
 
 def test_the_launch_file_compiles_and_names_what_exists():
