@@ -1,6 +1,7 @@
 # youbot_fdi: two commands do all the setup on a fresh Debian/Ubuntu machine with Python 3.11+:
 #   make demo    run the main job (youbot-fdi demo)
 #   make test    run the tests
+#   make check   lint (ruff) and the fast unit tests of the core, under a minute: between edits
 # Both create .venv first (make venv): the package in editable mode, the ROS 2 Jazzy wheels from
 # PyPI, the test tools and every optional extra. Re-running is quick when nothing changed.
 
@@ -17,7 +18,7 @@ export ROS_DOMAIN_ID ?= $(shell $(PYTHON) -c 'import os; print(os.getpid() % 100
 export ROS_PYTHON_CHECK_FIELDS := 1
 export MPLBACKEND := Agg
 
-.PHONY: venv demo test bench clean
+.PHONY: venv demo test check lint bench clean
 
 venv: $(STAMP)
 
@@ -33,6 +34,12 @@ demo: venv
 
 test: venv
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+lint: venv
+	$(BIN)/ruff check youbot_fdi test
+
+check: lint
+	$(BIN)/python -m pytest -q -m fast $(PYTEST_ARGS)
 
 clean:
 	rm -rf $(VENV) build install log out .pytest_cache .hypothesis

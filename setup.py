@@ -23,7 +23,7 @@ EXTRAS = {
     # youbot-fdi fleet: a fleet's recordings on a local or remote Dask cluster; never on the robot.
     'fleet': ['dask[distributed]>=2024.1'],
     # pytrinamic: Trinamic's own TMCL client, driven against the virtual youBot in the tests.
-    'test': ['pytest>=7', 'hypothesis>=6', 'colcon-common-extensions', 'pytrinamic>=0.2.26'],
+    'test': ['pytest>=7', 'hypothesis>=6', 'ruff>=0.6', 'colcon-common-extensions', 'pytrinamic>=0.2.26'],
 }
 EXTRAS['all'] = sorted({req for reqs in EXTRAS.values() for req in reqs})
 

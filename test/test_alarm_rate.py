@@ -7,6 +7,8 @@ import pytest
 
 from youbot_fdi.fdi import alarm_rate
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 
 def test_the_exponent_of_a_two_point_walk_is_log_two():
     """Steps +1 with probability 1/3 and -1 with 2/3: (1/3) e^t + (2/3) e^-t = 1 has the positive

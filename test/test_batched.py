@@ -457,7 +457,9 @@ def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
     their alarms on the faulty wheels (the cases are what they say)."""
     from youbot_fdi.bench.speed import bench_replay, REPLAY_WHEELS
     seconds = 12.0
-    *cases, live, learned = bench_replay(progress=lambda text: None, seconds=seconds)
+    *cases, identified, live, learned = bench_replay(progress=lambda text: None, seconds=seconds)
+    assert identified.name == 'identify: the 12 s fault-free recording'
+    assert identified.baseline == cases[0].value and identified.value > 0  # against its replay
     names = [c.name for c in cases]
     assert names == ['replay: fault-free', 'replay: fault-free, mcap', 'replay: a fault at 10 %',
                      'replay: faults on two wheels', 'replay: fault-free, no --params']
@@ -468,7 +470,7 @@ def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
     samples = seconds / 0.01  # the drive at the shim's 100 Hz
     assert live.baseline == pytest.approx(cases[0].value * 1e6 / samples, rel=0.05)  # µs per sample
     assert learned.value == live.value and learned.baseline_name == 'the same, physics only'
-    for result in (*cases, live, learned):
+    for result in (*cases, identified, live, learned):
         assert result.value > 0 and result.baseline > 0 and math.isfinite(result.ratio)
 
 

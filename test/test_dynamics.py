@@ -5,6 +5,8 @@ import scipy.signal
 
 from youbot_fdi.model import DriveTrain, load_model, zoh_discretize
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 R, K = 0.0475, 0.385
 
 

@@ -5,6 +5,8 @@ import pytest
 from youbot_fdi.errors import ModelError
 from youbot_fdi.model import BaseSimulator, ControlMode, load_model, sampled_loop_spectral_radius
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 
 def test_report_gains_make_a_sampled_1khz_loop_unstable_on_seed_values():
     seed = load_model('seed')

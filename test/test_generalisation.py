@@ -15,6 +15,8 @@ from youbot_fdi.samples import message_time
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 DRIVE = [(0.3, 0.0, 0.0, 1.5), (0.0, 0.25, 0.0, 1.5), (0.0, 0.0, 0.9, 1.5), (0.2, -0.2, 0.0, 1.5),
          (-0.25, 0.1, -0.5, 1.5), (0.0, 0.0, 0.0, 0.5)]
 

@@ -7,6 +7,8 @@ import pytest
 from youbot_fdi.errors import ModelError
 from youbot_fdi.model import integrate_pose, Kinematics, load_model, mecanum4, Odometry, Platform, Wheel
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 R = 0.0475
 K = 0.385  # l + L [m]
 

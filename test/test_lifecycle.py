@@ -1,10 +1,14 @@
 """The event lifecycle (``fdi/lifecycle.py``, issue 32): an alarm is an episode, confirmed once,
 held, healed with hysteresis; no two events of one component within the dwell."""
+import math
+
 import numpy as np
 import pytest
 
 from youbot_fdi.fdi.decision import FaultEvent
-from youbot_fdi.fdi.lifecycle import EventLifecycle, LifecycleSettings
+from youbot_fdi.fdi.lifecycle import EventLifecycle, LifecycleSettings, closest_events
+
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
 
 STEP = 0.01  # [s] rows
 
@@ -88,3 +92,14 @@ def test_reset_ends_what_is_shown_at_once():
     events = lifecycle.reset(0.01, 'repaired')
     assert [(e.level, e.wheel, e.detail) for e in events] == [('OK', 'wheel_joint_fl', 'repaired')]
     assert lifecycle.shown(('wheel_joint_fl', 'fault')) == ('OK', '')
+
+
+def test_the_closest_events_of_one_component_are_measured_per_component():
+    events = [raw(0.0, 'ERROR'), raw(0.1, 'ERROR', wheel='wheel_joint_br'),  # other component
+              raw(0.7, 'OK'), raw(1.0, 'ERROR', wheel='wheel_joint_fl', fault='friction'),
+              raw(1.05, 'WARN', wheel=None, fault='load_change')]  # a condition: its own channel
+    assert closest_events(events) == pytest.approx(0.3)  # fl: 0.0, 0.7, 1.0
+    assert closest_events(events[:2]) == math.inf
+    from youbot_fdi.bench.scoring import dwell_line
+    line = dwell_line([{'closest_events': 0.3}, {'closest_events': math.inf}], dwell=0.5)
+    assert '0.30 s (dwell 0.5 s)' in line and 'runs with two closer: 1 of 2' in line

@@ -8,6 +8,8 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.model import available_profiles, load_profile, parse_profile
 from youbot_fdi.model.profile import profile_path, profile_to_dict
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 
 def test_shipped_profiles_load():
     assert {'seed', 'youbot', 'omni3_example'} <= set(available_profiles())

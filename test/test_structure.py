@@ -13,6 +13,8 @@ from youbot_fdi.structure import analyze, Equation, sensor_placement, Structural
 from youbot_fdi.structure.analysis import find_msos, overdetermined_part
 from youbot_fdi.structure.report import reference_check, residual_file_text, to_dict
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 # The report's Table 4.4, copied from the report.
 TABLE_4_4 = dict(zip([f'c{k}' for k in range(1, 17)], 'n i n i n i n i d d d d d d d d'.split()))
 WHEELS = ('fl', 'fr', 'bl', 'br')

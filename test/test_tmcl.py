@@ -7,6 +7,8 @@ from youbot_fdi.tmcm.process_data import (MotorCommand, MotorStatus, ProcessData
 from youbot_fdi.tmcm.tmcl import (decode_reply_can, decode_reply_serial, decode_request_can,
                                   decode_request_serial, TmclDecodeError, TmclReply, TmclRequest)
 
+pytestmark = pytest.mark.fast  # `make check`: the unit tests of the core, under a minute
+
 bytes_ = st.integers(0, 255)
 int32 = st.integers(-(2 ** 31), 2 ** 31 - 1)
 requests = st.builds(TmclRequest, bytes_, bytes_, bytes_, bytes_, int32)

@@ -156,4 +156,13 @@ def format_live(soaks, fault_runs, driven):
             lines.append(f'  {condition:<10} {fault:<15} {len(chosen):>4} '
                          f'{sum(r.right_wheel_first for r in chosen):>12}/{len(chosen):<4} '
                          f'{sum(len(r.false_alarms) for r in chosen):>12} {median:>12} {worst:>10}')
+    wrong = [r for r in fault_runs if not r.right_wheel_first]
+    if wrong:
+        lines.append('  first alarm not on the injected wheel:')
+    for run in wrong:
+        first, injected = run.first_alarm, run.summary['injected_at']
+        said = ('none' if first is None else
+                f'{first["wheel"]}: {first["fault"]} {first["stamp"] - injected:+.2f} s from the injection'
+                if injected is not None else f'{first["wheel"]}: {first["fault"]}')
+        lines.append(f'    {run.condition}, {run.fault} on {run.wheel}: {said}')
     return '\n'.join(lines)

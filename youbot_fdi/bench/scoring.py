@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from youbot_fdi.faults import LOAD_CHANGE, UNSEEN_OPERATING_POINT
+from youbot_fdi.fdi.lifecycle import closest_events
 
 ERROR = 'ERROR'
 #: The type named for an episode is its last ERROR on that wheel within this time of the first [s]
@@ -56,7 +57,8 @@ def score(case, events):
                       and not math.isnan(case.onset) else math.nan),  # onset NaN: never visible
             'warnings': sum(e.level == 'WARN' and e.fault == LOAD_CHANGE for e in events),
             'unseen_warnings': sum(e.level == 'WARN' and e.fault == UNSEEN_OPERATING_POINT
-                                   for e in events)}
+                                   for e in events),
+            'closest_events': closest_events(events)}
 
 
 def summarise(title, results):
@@ -79,7 +81,24 @@ def summarise(title, results):
     lines.append(f'  load-condition warnings (WARN, not alarms): {sum(r["warnings"] for r in results)}; '
                  f'operating point not seen in calibration: '
                  f'{sum(r.get("unseen_warnings", 0) for r in results)}')
+    lines.append('  ' + dwell_line(results))
     return '\n'.join(lines)
+
+
+def dwell_line(results, dwell=None):
+    """The printed check of the event lifecycle's dwell over ``results``: the closest two events
+    of one component in any run, and the runs where two came closer than ``dwell`` [s] (default:
+    the configured one)."""
+    if dwell is None:
+        from youbot_fdi.fdi.settings import FdiSettings
+        from youbot_fdi.settings import load_settings
+        dwell = load_settings(FdiSettings, 'fdi').dwell
+    gaps = [r.get('closest_events', math.inf) for r in results]
+    closest = min(gaps, default=math.inf)
+    under = sum(gap < dwell - 1e-9 for gap in gaps)
+    shown = 'no component evented twice' if math.isinf(closest) else f'{closest:.2f} s'
+    return (f'closest two events of one component: {shown} (dwell {dwell:g} s); '
+            f'runs with two closer: {under} of {len(results)}')
 
 
 def _row(label, rows):

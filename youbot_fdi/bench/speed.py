@@ -147,6 +147,7 @@ def bench_nodes(seconds=5.0, progress=print):
 REPLAY_DRIVE = 60.0  # [s] of aggressive driving per replay case, 100 Hz
 REPLAY_REPEATS = 3  # best of
 REPLAY_TARGET = 1.5  # replay <= this x decode-only (issue 14)
+IDENTIFY_TARGET = 10.0  # identify <= this x the replay of its recording (issue 34)
 START_REPEATS = 5  # best of, for the command line's start time
 START_TARGET = 2.0  # `youbot-fdi --help` <= this x `python -c "import numpy"`
 REPLAY_WHEELS = ('wheel_joint_fl', 'wheel_joint_br')  # the faulty wheels of the fault cases
@@ -164,7 +165,7 @@ def _best_time(function, repeats=REPLAY_REPEATS):
 def _replay_recordings(workdir, progress, seconds):
     """The replay cases' recordings of one plant unlike the default profile (the fault
     benchmark's first random variation), and its parameter file identified from the fault-free
-    one: {case: (recording, parameter file or None)}."""
+    one: ({case: (recording, parameter file or None)}, the time ``identify`` took [s])."""
     from youbot_fdi.bench.calibration import calibrate
     from youbot_fdi.bench.simulated import _chain, make_variations, random_script, true_model
     from youbot_fdi.model import load_model
@@ -185,10 +186,12 @@ def _replay_recordings(workdir, progress, seconds):
         paths[name] = record_drive(workdir / name.replace(' ', '_').replace(',', '').replace('%', 'pc'),
                                    plant, script, **fault, **_chain(variation)).path
     progress('  identifying the plant from the fault-free recording')
+    started = time.perf_counter()
     params = calibrate(paths['fault-free'], prior, workdir / 'params')[0]['learned']
+    identified = time.perf_counter() - started
     cases = {name: (path, params) for name, path in paths.items()}
     cases['fault-free, no --params'] = (paths['fault-free'], None)
-    return cases
+    return cases, identified
 
 
 def bench_replay(progress=print, seconds=REPLAY_DRIVE):
@@ -202,7 +205,7 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
     from youbot_fdi.fdi.pipeline import build_pipeline, FdiPipeline
     results = []
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
-        cases = _replay_recordings(Path(tmp), progress, seconds)
+        cases, identified = _replay_recordings(Path(tmp), progress, seconds)
         for name, (path, params) in cases.items():
             model, _ = build_pipeline(params)
 
@@ -227,6 +230,10 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
         path, params = cases['fault-free']
         model, _ = build_pipeline(params)
         replayed = results[0].value
+        results.append(BenchResult(f'identify: the {seconds:g} s fault-free recording', identified,
+                                   's', 'replay of it', replayed,
+                                   f'once (a user runs it once); target <= {IDENTIFY_TARGET:g}x '
+                                   '(issue 34)'))
 
         def live(physics_only=False):
             _, pipeline = build_pipeline(params)

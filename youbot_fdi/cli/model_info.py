@@ -10,8 +10,8 @@ def add_parser(subparsers):
         description='Print the Jacobian (eq. 3.8), forward kinematics (eq. 3.11), mass matrix, '
                     'free-motion time constants and sampled velocity-loop stability of a profile.')
     parser.add_argument('--profile', default='youbot',
-                        help='profile name (%s) or a YAML path (default: youbot)'
-                        % ', '.join(available_profiles()))
+                        help=f"profile name ({', '.join(available_profiles())}) or a YAML path "
+                             '(default: youbot)')
     parser.set_defaults(run=run)
 
 

@@ -66,6 +66,19 @@ def component(event):
     return (event.wheel, event.fault if event.fault in CONDITIONS else FAULT_CHANNEL)
 
 
+def closest_events(events):
+    """The shortest time [s] between two published events of one component in ``events`` (any
+    order; inf with no component evented twice): the dwell bounds it from below (the fault
+    benchmark prints it per suite)."""
+    last, closest = {}, math.inf
+    for event in sorted(events, key=lambda e: e.stamp):
+        key = component(event)
+        if key in last:
+            closest = min(closest, event.stamp - last[key])
+        last[key] = event.stamp
+    return closest
+
+
 class EventLifecycle:
     """Raw decision events in, published episodes out (see the module docstring)."""
 

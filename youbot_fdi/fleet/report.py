@@ -16,7 +16,7 @@ HTML_NAME = 'report.html'
 def _when(stamp):
     if not math.isfinite(stamp):
         return ''
-    return datetime.datetime.fromtimestamp(stamp, datetime.timezone.utc).isoformat(timespec='seconds')
+    return datetime.datetime.fromtimestamp(stamp, datetime.UTC).isoformat(timespec='seconds')
 
 
 def write_csv(rows, path):
