@@ -72,10 +72,14 @@ def summarise(title, results):
         rows = [r for r in faulty if r['fault'] == fault]
         lines.append('  ' + _row(fault, rows))
     lines.append('  ' + _row('all faults', faulty))
+    # every judged run counts (a recording judged by several folds or plants' runs that share a
+    # name count once each); the names are listed once
+    alarmed = sum(1 for r in results if r['false_alarms'])
     with_alarms = sorted({r['case'] for r in results if r['false_alarms']})
     lines.append(f'  false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free'
                  + (f' = {false_alarms / hours:.1f} per hour' if hours else '')
-                 + f'; runs with one: {len(with_alarms)} of {len(results)}')
+                 + f'; runs with one: {alarmed} of {len(results)}'
+                 + (f' ({len(with_alarms)} recordings)' if len(with_alarms) != alarmed else ''))
     if with_alarms:
         lines.append('    ' + ', '.join(with_alarms[:12]) + (' ...' if len(with_alarms) > 12 else ''))
     lines.append(f'  load-condition warnings (WARN, not alarms): {sum(r["warnings"] for r in results)}; '

@@ -11,17 +11,20 @@ def add_parser(subparsers):
                     'virtual base, replay and the live FDI path, and the node suite, each against '
                     'a baseline measured in the same run (printed as ratios, so results compare '
                     'across machines); also the CLI start time, the CAN fuzz (100,000 frames), the '
-                    'learned correction and the fleet on Dask. Takes about 4 minutes. With --faults: '
-                    'the fault benchmark '
-                    '(detection, isolation, delays, false alarms per hour) on three suites side '
+                    'learned correction, identify and the fleet on Dask. Takes about 9 minutes. '
+                    'With --faults: the fault benchmark (detection, isolation, delays, false '
+                    'alarms per hour, the closest two events of one component) on four suites side '
                     'by side: the project\'s virtual base (both control modes, with replay speed '
-                    'against decode-only), an independently written simulator, and the real '
-                    'Robotino recordings in shared/, each replayed with the learned and the '
-                    'physics-only parameters (the ablation table).')
+                    'against decode-only), an independently written simulator, a cross-validation '
+                    'on the real Robotino recordings in shared/ (worst fold first), and randomized '
+                    'plants written apart from the FDI\'s model, each replayed with the learned '
+                    'and the physics-only parameters (the ablation table). With --live: the live '
+                    'soak.')
     parser.add_argument('--faults', action='store_true',
                         help='run the fault benchmark instead: its suites (see --suites), each '
-                             'calibrated with identify as a user would (about 11 minutes on 2 '
-                             'cores for all three)')
+                             'calibrated with identify as a user would (on 2 cores: about 25 '
+                             'minutes without the randomized suite, which adds about 15 per 50 '
+                             'plants)')
     parser.add_argument('--live', action='store_true',
                         help='run the live soak instead: youbot-fdi demo as a user runs it, the '
                              'fault-free drive for --soak-minutes alone and beside a busy core '

@@ -1,0 +1,32 @@
+"""The fault benchmark's scoring (``bench/scoring.py``): what counts as a run with a false alarm."""
+import math
+
+import pytest
+
+from youbot_fdi.bench.scoring import Case, score, summarise
+from youbot_fdi.fdi.decision import FaultEvent
+
+pytestmark = pytest.mark.fast  # `make check`
+
+
+def alarm(stamp, wheel='wheel_joint_fl', fault='friction'):
+    return FaultEvent(stamp, 'ERROR', wheel, fault, ('torque_fl',))
+
+
+def test_every_judged_run_with_an_alarm_counts_even_when_runs_share_a_name():
+    """A recording judged by two folds (or two runs of one plant named alike) is two runs."""
+    quiet = Case('plant000/fault_free', 'unused', 60.0)
+    results = [score(quiet, [alarm(10.0)]), score(quiet, [alarm(20.0), alarm(40.0)]),
+               score(quiet, [])]
+    table = summarise('t', results)
+    assert 'false alarms        3 in 180 s fault-free' in table
+    assert 'runs with one: 2 of 3 (1 recordings)' in table
+
+
+def test_an_alarm_after_the_onset_on_the_right_wheel_is_a_detection_not_a_false_alarm():
+    case = Case('stuck', 'unused', 20.0, fault='stuck', wheel='wheel_joint_fl', onset=10.0,
+                expected='stuck')
+    result = score(case, [alarm(10.05, fault='stuck')])
+    assert result['detected'] and result['isolated'] and result['named']
+    assert result['false_alarms'] == 0 and result['delay'] == pytest.approx(0.05)
+    assert result['fault_free_seconds'] == 10.0 and math.isinf(result['closest_events'])
