@@ -239,15 +239,24 @@ class DecisionMaker:
         residuals also the CUSUMs of their shift, up and down, ``min(+-shift, cap) - shift_drift``
         (held below ``SHIFT_CEILING`` thresholds). Judged in thresholds (:meth:`_judged`).
         """
-        s = self.settings
-        g = cusum(weight[:, None, None] * (np.minimum(z, s.evidence_cap) - s.evidence_drift),
-                  self._evidence)
-        capped = np.clip(shift, -s.evidence_cap, s.evidence_cap)
-        shifted = bounded_cusum(weight[:, None, None] * (np.stack([capped, -capped], axis=1) - s.shift_drift),
-                                self._shift, SHIFT_CEILING * s.shift_threshold)
+        magnitude, shift_up_down = self.increments(z, shift, weight)
+        g = cusum(magnitude, self._evidence)
+        shifted = bounded_cusum(shift_up_down, self._shift,
+                                SHIFT_CEILING * self.settings.shift_threshold)
         self._pass['evidence'], self._pass['shift'] = g, shifted
         self._evidence, self._shift = g[-1], shifted[-1]
         return self._judged(g, shifted)
+
+    def increments(self, z, shift, weight):
+        """The CUSUMs' increments: of the magnitudes (N, families, n), ``min(z, cap) -
+        evidence_drift``, and of the torque shifts up and down (N, 2, n), ``min(+-shift, cap) -
+        shift_drift``, each row weighted by ``weight`` (N,). Stateless (``identify`` bounds the
+        alarm rate of the same increments, fdi/alarm_rate.py)."""
+        s = self.settings
+        w = np.asarray(weight, dtype=float)[:, None, None]
+        capped = np.clip(shift, -s.evidence_cap, s.evidence_cap)
+        return (w * (np.minimum(z, s.evidence_cap) - s.evidence_drift),
+                w * (np.stack([capped, -capped], axis=1) - s.shift_drift))
 
     def _judged(self, magnitude, shift):
         """The evidence in thresholds (..., families, n), an alarm from 1: the magnitude CUSUMs

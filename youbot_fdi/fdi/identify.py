@@ -421,14 +421,7 @@ def held_out_scores(model, batch, settings):
         held = ResidualEvaluator(model, replace(settings, **learned))
         part = batch.select(judge)
         for k, family in enumerate(FAMILIES):
-            if family == 'command':  # by mode: the command bound, or the effort bound
-                velocity = part.velocity_mode[:, None]
-                was = np.where(velocity, full.bound('command', part.features['command']),
-                               full.bound('effort', part.features['effort']))
-                now = np.where(velocity, held.bound('command', part.features['command']),
-                               held.bound('effort', part.features['effort']))
-            else:
-                was, now = full.bound(family, part.features[family]), held.bound(family, part.features[family])
+            was, now = _learned_bound(full, family, part), _learned_bound(held, family, part)
             settling = part.bounds[family] == 1.0  # the command path while it settles: not judged
             bound = np.where(settling, 1.0, part.bounds[family] - was + now)
             value = np.where(settling, 0.0, part.values[family])
@@ -437,6 +430,15 @@ def held_out_scores(model, batch, settings):
                 torque_bound[judge], torque_scale[judge] = bound, now
     scores[~np.isfinite(scores)] = 0.0
     return scores, torque_bound, torque_scale
+
+
+def _learned_bound(evaluator, family, batch):
+    """The learned part of ``family``'s bound (N, n) on the rows of ``batch`` with
+    ``evaluator``'s weights; the command family by mode (its velocity bound, or the effort one)."""
+    if family != 'command':
+        return evaluator.bound(family, batch.features[family])
+    return np.where(batch.velocity_mode[:, None], evaluator.bound('command', batch.features['command']),
+                    evaluator.bound('effort', batch.features['effort']))
 
 
 def false_alarm_rates(model, batch, settings):
@@ -448,19 +450,19 @@ def false_alarm_rates(model, batch, settings):
     scores, torque_bound, torque_scale = held_out_scores(model, batch, settings)
     decision = DecisionMaker(model.wheel_names, settings, load_residual_data(settings.residual_file or None,
                                                                               model.wheel_names))
-    weight = decision.sample_weights(batch.stamp)[:, None]
+    weight = decision.sample_weights(batch.stamp)
     interval = float(np.median(np.diff(batch.stamp))) if len(batch) > 1 else settings.evidence_interval
-    estimates = {}
-    for k, family in enumerate(FAMILIES):
-        z = scores[:, k]
-        estimates[family] = alarm_rate.estimate(
-            weight * (np.minimum(z, settings.evidence_cap) - settings.evidence_drift), z, interval)
     breaking = decision._breaking_away(batch.velocity, batch.stamp)
     shift = decision.torque_shift(batch.values['torque'], torque_bound, torque_scale, batch.stamp,
                                   np.zeros(model.dynamics.n_wheels, dtype=bool), breaking)
+    magnitude, shift_up_down = decision.increments(scores, shift, weight)
+    estimates = {family: alarm_rate.estimate(magnitude[:, k], scores[:, k], interval)
+                 for k, family in enumerate(FAMILIES)}
+    rows = len(batch)
     capped = np.clip(shift, -settings.evidence_cap, settings.evidence_cap)
-    both = np.concatenate([capped, -capped], axis=1)
-    estimates['torque shift'] = alarm_rate.estimate(weight * (both - settings.shift_drift), both, interval)
+    estimates['torque shift'] = alarm_rate.estimate(
+        shift_up_down.reshape(rows, -1), np.stack([capped, -capped], axis=1).reshape(rows, -1),
+        interval)
     return estimates
 
 
