@@ -61,6 +61,7 @@ def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
     joints = probe.create_publisher(JointState, '/joint_states', 10)
     commands = probe.create_publisher(JointState, '/wheel_commands', 10)
     count = [0]
+    newest = [0.0]  # the newest stamp sent on /joint_states [s]
 
     def publish():
         stamp = now_seconds(decision)
@@ -70,9 +71,11 @@ def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
             bad = bad_messages(stamp)[(k // BAD_EVERY) % 5]
             (joints if (k // BAD_EVERY) % 2 else commands).publish(bad)
             joints.publish(bad)
+            newest[0] = max(newest[0], bad.header.stamp.sec + bad.header.stamp.nanosec * 1e-9)
         else:
             commands.publish(message(stamp))
             joints.publish(message(stamp))
+            newest[0] = stamp
 
     harness.spin_for(6.0, every=1.0 / RATE, action=publish)
     assert residuals, 'the observer stopped'
@@ -85,16 +88,56 @@ def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
         assert sum(w.name.endswith(f'/{node}: input') for w in warnings) <= 8  # one a second (6 s)
     assert [e for e in faults if e.level == 'ERROR'] == []
 
-    # /joint_states falls silent: comm_loss of the base within comm_timeout.
+    # /joint_states falls silent: comm_loss of the base within comm_timeout, stamped that long
+    # after the newest sample the base sent (a bad one too: the base was not silent then).
     silent_from = now_seconds(decision)
     harness.spin_for(SILENCE)
     lost = [e for e in faults if e.level == 'ERROR']
     assert [(e.wheel, e.fault) for e in lost] == [(None, 'comm_loss')]
     settings = FdiSettings()
-    assert lost[0].stamp - residuals[-1].header.stamp.sec - residuals[-1].header.stamp.nanosec * 1e-9 \
-        == pytest.approx(settings.data_timeout, abs=1e-6)
+    assert lost[0].stamp - newest[0] == pytest.approx(settings.data_timeout, abs=1e-6)
     assert len(residuals) == late
     assert silent_from < lost[0].stamp + 0.5  # raised while silent, not before
+
+
+def test_fdi_nodes_behind_a_flowing_base_are_a_pipeline_warn_not_a_base_comm_loss(harness):
+    """Residuals stop while /joint_states flow (an FDI node starved of CPU, or down): the
+    decision says so as a WARN ``pipeline`` status on /diagnostics and raises no fault; when the
+    base itself then falls silent, that is its comm_loss, stamped ``data_timeout`` after the
+    newest sample it sent."""
+    harness.add(ObserverNode(context=harness.context))
+    generator = harness.add(ResidualGeneratorNode(context=harness.context))
+    decision = harness.add(DecisionNode(context=harness.context))
+    faults, pipeline, residuals = [], [], []
+    probe = harness.probe
+    probe.create_subscription(DiagnosticArray, '/youbot_fdi/faults',
+                              lambda m: faults.extend(event_from_status(s) for s in m.status), LATCHED_QOS)
+    probe.create_subscription(
+        DiagnosticArray, '/diagnostics',
+        lambda m: pipeline.extend(s for s in m.status if s.name.endswith('decision: pipeline')), 10)
+    probe.create_subscription(JointState, '/youbot_fdi/residuals', residuals.append, 10)
+    joints = probe.create_publisher(JointState, '/joint_states', 10)
+    commands = probe.create_publisher(JointState, '/wheel_commands', 10)
+    newest = [0.0]
+
+    def publish():
+        newest[0] = now_seconds(decision)
+        commands.publish(message(newest[0]))
+        joints.publish(message(newest[0]))
+
+    harness.spin_for(2.0, every=1.0 / RATE, action=publish)
+    assert residuals, 'no residuals before the stall'
+    assert pipeline and all(s.level == DiagnosticStatus.OK for s in pipeline)
+    harness.executor.remove_node(generator)  # the residual generator stops; the base drives on
+    stopped = len(residuals)
+    harness.spin_for(1.0, every=1.0 / RATE, action=publish)
+    assert len(residuals) == stopped
+    assert [e for e in faults if e.level == 'ERROR'] == []
+    assert pipeline[-1].level == DiagnosticStatus.WARN and 'behind or down' in pipeline[-1].message
+    harness.spin_for(SILENCE)  # now the base falls silent too
+    lost = [e for e in faults if e.level == 'ERROR']
+    assert [(e.wheel, e.fault) for e in lost] == [(None, 'comm_loss')]
+    assert lost[0].stamp - newest[0] == pytest.approx(FdiSettings().data_timeout, abs=1e-6)
 
 
 def test_a_wheel_without_readings_is_its_comm_loss_never_a_frozen_encoder(harness):

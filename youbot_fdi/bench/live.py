@@ -118,6 +118,11 @@ def run_live(progress, soak_minutes=SOAK_MINUTES, faults=None, wheels=None):
     return format_live(soaks, fault_runs, repeat * script.duration)
 
 
+def startup_late(run):
+    """The shim's late cycles before the drive (while the FDI nodes connected)."""
+    return (run.summary.get('shim_startup') or {}).get('late_cycles', 0)
+
+
 class _Nothing:
     def __enter__(self):
         return self
@@ -132,14 +137,19 @@ def format_live(soaks, fault_runs, driven):
     lines = [f'Live soak: youbot-fdi demo, separate FDI node processes, fault-free demo drive '
              f'({driven / 60:.1f} min each)',
              f'  {"condition":<10} {"alarms":>6} {"shim cycles":>11} {"late":>5} {"missing":>8} '
-             f'{"lateness p99 / max":>19}']
+             f'{"lateness p99 / max":>19} {"late at start-up":>16}']
     for run in soaks:
         shim = run.summary['shim']
         lines.append(f'  {run.condition:<10} {len(run.alarms):>6} {shim["cycles"]:>11} '
                      f'{shim["late_cycles"]:>5} {shim["incomplete_cycles"]:>8} '
-                     f'{shim["lateness_p99"]:>8.1f} / {shim["lateness_max"]:.1f} ms')
+                     f'{shim["lateness_p99"]:>8.1f} / {shim["lateness_max"]:.1f} ms '
+                     f'{startup_late(run):>10}')
     lines.append('  late: cycles past the modules\' controller timeout; missing: module answers '
-                 'not in their cycle')
+                 'not in their cycle; late at start-up: before the drive (the FDI nodes '
+                 'connecting), in all fault runs too')
+    startup = [startup_late(run) for run in fault_runs]
+    lines.append(f'  late cycles at start-up over the {len(fault_runs)} fault runs: '
+                 f'{sum(startup)}')
     lines += ['', 'Every demo fault on every wheel (demo drive, fault at 5 s):',
               f'  {"condition":<10} {"fault":<15} {"runs":>4} {"right wheel first":>17} '
               f'{"false alarms":>12} {"median delay":>12} {"max delay":>10}']

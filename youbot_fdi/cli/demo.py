@@ -93,7 +93,7 @@ def write_summary(path, args, run, alarms, tracking):
         'tracking_rms_angular_radps': None if tracking is None else round(tracking[1], 5),
         'tracking_from': tracking_window(args, run)[1],
         'drive_start': run.start, 'injected_at': run.injected_at,
-        'shim': run.shim,
+        'shim': run.shim, 'shim_startup': run.shim_startup,
     }
     Path(path).write_text(json.dumps(summary, indent=2) + '\n')
 
@@ -155,6 +155,10 @@ def run(args):
           f"max {shim['lateness_max']:.1f} ms; {shim['late_cycles']} past the modules' "
           f"{shim['controller_timeout_ms']:g} ms timeout; {shim['incomplete_cycles']} module "
           'answers missing')
+    if run.shim_startup and run.shim_startup['late_cycles']:
+        print(f"  driver shim before the drive (the FDI nodes connecting): "
+              f"{run.shim_startup['late_cycles']} late cycles, lateness max "
+              f"{run.shim_startup['lateness_max']:.1f} ms")
     if run.before_drive:
         print('  before the drive, while the nodes started (not counted above): '
               + ', '.join(f'{getattr(e, "action", None) or e.level} {e.wheel or "base"}: {e.fault}'

@@ -156,6 +156,36 @@ class TimingReport:
         self.publisher.publish(array)
 
 
+class NewestMessage:
+    """The newest message on a topic, read when asked, at no cost per message.
+
+    The subscription lives on a node of its own that no executor spins: the middleware keeps
+    the newest message (depth 1) and :meth:`take` reads it, so a node that only needs to know
+    *whether* a stream still flows (the decision asking whether the base is silent or the FDI
+    nodes behind it) adds no callback and no executor wake-up per message. Best effort: matches
+    reliable and best-effort publishers alike.
+    """
+
+    QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                     history=HistoryPolicy.KEEP_LAST)
+
+    def __init__(self, owner, msg_type, topic):
+        self._node = rclpy.create_node(f'{owner.get_name()}_watch', namespace=owner.get_namespace(),
+                                       context=owner.context, start_parameter_services=False,
+                                       enable_rosout=False)
+        self._subscription = self._node.create_subscription(msg_type, topic, lambda _msg: None,
+                                                            self.QOS)
+
+    def take(self):
+        """The newest message received since the last take, or None if none came."""
+        with self._subscription.handle:
+            taken = self._subscription.handle.take_message(self._subscription.msg_type, False)
+        return taken[0] if taken else None
+
+    def close(self):
+        self._node.destroy_node()
+
+
 class InputWarnings:
     """A node's WARN on /diagnostics naming the input problems counted since the last one (at
     most one every ``interval`` s; :class:`~youbot_fdi.samples.InputReport`): the messages

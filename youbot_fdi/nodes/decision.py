@@ -5,9 +5,16 @@ Runs :class:`~youbot_fdi.fdi.decision.DecisionMaker` on the residual frames the 
 fault state changed, with the event in its KeyValues (stamp, level, wheel, fault, residuals,
 detail). ``/diagnostics`` gets one status per wheel and one for the base, at ``diagnostics_rate``
 and on every change. Service ``~/reset`` (std_srvs/Trigger) clears latched faults after a repair,
-answers what it cleared and publishes an OK event for each. No residuals for longer than ``comm_timeout`` (ROS time, so replayed
-recordings with use_sim_time work) is comm_loss of the base.
+answers what it cleared and publishes an OK event for each.
+
+Silence is judged on what the base sends: no residual for ``data_timeout`` (ROS time, so replayed
+recordings with use_sim_time work) is comm_loss of the base only if no /joint_states came after
+the last sample judged either. If samples came (an FDI node is behind or down: starting, starved
+of CPU), that is not a base fault: a WARN ``pipeline`` status on ``/diagnostics`` says so until
+residuals flow again. The decision reads /joint_states only then (:class:`NewestMessage`: no
+callback per sample).
 """
+import math
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -20,10 +27,10 @@ from youbot_fdi.fdi.pipeline import configure, load_residual_data
 from youbot_fdi.fdi.residuals import ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, diagnostics_publisher, LATCHED_QOS,
-                                     NAME_PREFIX, now_seconds, seconds_to_stamp, SENSOR_QOS,
-                                     spin_nodes, stamp_to_seconds, timing_report)
+                                     NAME_PREFIX, NewestMessage, now_seconds, seconds_to_stamp,
+                                     SENSOR_QOS, spin_nodes, stamp_to_seconds, timing_report)
 from youbot_fdi.nodes.conversions import BASE_COMPONENT, fault_array, LEVELS
-from youbot_fdi.topics import FAULTS, RESIDUALS
+from youbot_fdi.topics import FAULTS, JOINT_STATES, RESIDUALS
 
 NODE_NAME = 'decision'
 
@@ -41,7 +48,10 @@ class DecisionNode(Node):
                                       load_residual_data(self.settings.residual_file or None,
                                                          self.model.wheel_names))
         self.events = []
-        self._last_stamp = None
+        self._last_stamp = None  # of the last residual frame [s]
+        self._heard = -math.inf  # the newest /joint_states stamp seen at a stall [s]
+        self._behind_since = None  # residuals stopped while /joint_states flowed: since [s]
+        self.base_watch = NewestMessage(self, JointState, JOINT_STATES)
         self.faults_pub = self.create_publisher(DiagnosticArray, FAULTS, LATCHED_QOS)
         self.diag_pub = diagnostics_publisher(self)
         self.timing = timing_report(self, self.settings)
@@ -62,6 +72,9 @@ class DecisionNode(Node):
             return
         self._last_stamp = stamp
         self.stall_timer.reset()
+        if self._behind_since is not None:
+            self.get_logger().info('residuals flow again')
+            self._behind_since = None
         self.emit(self.decision.data_resumed(stamp) + self.decision.update(frame))
 
     def on_reset(self, _request, response):
@@ -75,9 +88,28 @@ class DecisionNode(Node):
         return response
 
     def check_stall(self):
-        """No residual for ``data_timeout`` (the timer ran out): comm_loss of the base."""
-        if self._last_stamp is not None:
-            self.emit(self.decision.data_stalled(self._last_stamp))
+        """No residual for ``data_timeout`` (the timer ran out, and runs out again every
+        ``data_timeout`` while none comes): the base is silent (comm_loss) unless a /joint_states
+        sample came after the last one judged, or since the last check; then the FDI nodes are
+        behind (a WARN on /diagnostics, no fault)."""
+        if self._last_stamp is None:
+            return
+        since = max(self._last_stamp, self._heard)
+        newest = self.base_watch.take()
+        if newest is not None:
+            stamp = stamp_to_seconds(newest.header.stamp)
+            heard = stamp if stamp > 0.0 else now_seconds(self)  # unstamped: it came just now
+            if heard > since:
+                self._heard = heard
+                if self._behind_since is None:
+                    self._behind_since = since
+                    self.get_logger().warning(
+                        f'no residuals for {self.settings.data_timeout:g} s while /joint_states '
+                        'flow: an FDI node is behind or down (not a base fault)')
+                    self.publish_diagnostics()
+                return
+        self._behind_since = None
+        self.emit(self.decision.data_stalled(since))
 
     def emit(self, events):
         if not events:
@@ -91,6 +123,23 @@ class DecisionNode(Node):
             else:
                 self.get_logger().info(text)
         self.publish_diagnostics()
+
+    def destroy_node(self):
+        self.base_watch.close()
+        return super().destroy_node()
+
+    def pipeline_status(self):
+        """The FDI pipeline's status: WARN while residuals stop and /joint_states flow."""
+        status = DiagnosticStatus()
+        status.name = f'{NAME_PREFIX}/{NODE_NAME}: pipeline'
+        status.hardware_id = 'fdi'
+        if self._behind_since is None:
+            status.level, status.message = DiagnosticStatus.OK, 'residuals flow'
+        else:
+            status.level = DiagnosticStatus.WARN
+            status.message = (f'no residuals since {self._behind_since:.3f} s while /joint_states '
+                              'flow: an FDI node is behind or down')
+        return status
 
     def publish_diagnostics(self):
         array = DiagnosticArray()
@@ -106,6 +155,7 @@ class DecisionNode(Node):
             if self._last_stamp is None:
                 status.level, status.message = DiagnosticStatus.STALE, 'no residuals yet'
             array.status.append(status)
+        array.status.append(self.pipeline_status())
         self.diag_pub.publish(array)
 
 

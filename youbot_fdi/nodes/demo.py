@@ -273,6 +273,8 @@ class DemoRun:
     before_drive: list = ()  # events and reactions while the nodes started, before the drive
     #: the driver shim's cycle over the run: counters and timing (:func:`shim_figures`)
     shim: dict = None
+    #: the same figures from the shim's start to the drive's (the FDI nodes connecting)
+    shim_startup: dict = None
 
     def tracking_error(self, since):
         """RMS body-velocity tracking error from ``since`` [s] to the end: (linear [m/s],
@@ -334,21 +336,38 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             nodes += [factory(context=context, parameter_overrides=bridge)
                       if node_module(factory) == bridge_module else factory(context=context)
                       for factory in factories]
+        startup = {}
+
+        def drive_starts():
+            startup.update(shim_figures(shim.driver))
+            shim.driver.restart_counters()
+
         driver = DemoDriverNode(plan, base_node.base, log, waits_for, context=context,
-                                on_start=shim.driver.restart_counters)
+                                on_start=drive_starts)
         nodes.append(driver)
-        for node in nodes:
-            executor.add_node(node)
+        executor.add_node(driver)
         freeze_startup_heap()
         start_deadline = time.monotonic() + PROCESS_START_TIMEOUT
-        while driver.start is None and time.monotonic() < start_deadline:
-            executor.spin_once(timeout_sec=0.01)
-            if any(p.poll() is not None for p in processes):
-                msg = f'an FDI node process ended at start (logs: {log_dir})'
+
+        def spin_until(done, what):
+            while not done() and time.monotonic() < start_deadline:
+                executor.spin_once(timeout_sec=0.01)
+                if any(p.poll() is not None for p in processes):
+                    msg = f'an FDI node process ended at start (logs: {log_dir})'
+                    raise RuntimeError(msg)
+            if not done():
+                msg = f'{what} within {PROCESS_START_TIMEOUT:g} s'
                 raise RuntimeError(msg)
-        if driver.start is None:
-            msg = f'the FDI nodes did not appear within {PROCESS_START_TIMEOUT:g} s'
-            raise RuntimeError(msg)
+
+        # The base and its driver run once the FDI node processes are on the graph: their start
+        # (imports, models) takes every core for seconds, and a driver starved meanwhile stalls
+        # its stream (the base's comm_loss, the modules' controller timeout). On a robot the
+        # driver runs first, at real-time priority (docs/tmcm.md, "Cycle timing").
+        spin_until(lambda: set(waits_for) <= set(driver.get_node_names()),
+                   'the FDI node processes did not appear')
+        for node in nodes[:-1]:
+            executor.add_node(node)
+        spin_until(lambda: driver.start is not None, 'the FDI nodes did not connect')
         deadline = time.monotonic() + (max_wall_time or plan.script.duration * 3 + 30)
         while not driver.done and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.01)
@@ -356,7 +375,7 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             executor.spin_once(timeout_sec=0.01)
         return DemoRun(list(driver.events), driver.injected_at, driver.start,
                        list(driver.reactions), list(driver.tracking), list(driver.before_drive),
-                       shim_figures(shim.driver))
+                       shim_figures(shim.driver), startup)
     finally:
         stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)
