@@ -13,9 +13,10 @@ import pytest
 
 from youbot_fdi.bag import RecordingReader, RecordingWriter
 from youbot_fdi.bag.cdr import JointStateLayout
-from youbot_fdi.fdi.pipeline import build_pipeline
+from youbot_fdi.app.config import build_pipeline
 from youbot_fdi.fdi.decision import DecisionMaker
-from youbot_fdi.fdi.pipeline import FdiPipeline, load_residual_data
+from youbot_fdi.app.config import load_residual_data, residual_data_for
+from youbot_fdi.fdi.pipeline import FdiPipeline
 from youbot_fdi.fdi.recursions import (affine_recursion, bounded_cusum, cusum, last_true_value,
                                       run_lengths, scalar_recursion)
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
@@ -186,7 +187,7 @@ def test_batched_replay_equals_sample_by_sample(recordings, model, name, input_d
     settings = replace(pipeline.settings, input_delay=input_delay)
     if name == 'relapse':  # every raw change published as it comes: the latch itself is compared
         settings = replace(settings, heal_time=0.0, dwell=0.0)
-    pipeline = FdiPipeline(model, settings, keep_frames=True)
+    pipeline = FdiPipeline(model, settings, residual_data_for(model, settings), keep_frames=True)
     stepped = []
     original = pipeline.generator.observer._stepped
     pipeline.generator.observer._stepped = lambda *args: stepped.append(1) or original(*args)
@@ -223,7 +224,7 @@ def test_batched_replay_equals_sample_by_sample_with_a_learned_correction(record
                           'speed_range': [[-6.0, 6.0]] * 4, 'acceleration_range': [[-40.0, 40.0]] * 4}}
     corrected = PlatformModel(replace(model.profile, learned=learned))
     settings = build_pipeline()[1].settings
-    pipeline = FdiPipeline(corrected, settings, keep_frames=True)
+    pipeline = FdiPipeline(corrected, settings, residual_data_for(corrected, settings), keep_frames=True)
     assert pipeline.generator.correction is not None
     with RecordingReader(recordings['friction'], model.wheel_names) as reader:
         events = [e for chunk in reader.chunks(size=SMALL_CHUNK) for e in pipeline.feed(chunk)]
@@ -238,7 +239,7 @@ def test_batched_replay_equals_sample_by_sample_with_a_learned_correction(record
     for family, rms in pipeline.spread.rms().items():
         values = pipeline.residuals().values[family]
         assert rms == pytest.approx(np.sqrt(np.mean(values[np.isfinite(values)] ** 2)), rel=1e-9)
-    physics = FdiPipeline(model, settings, keep_frames=True)
+    physics = FdiPipeline(model, settings, residual_data_for(model, settings), keep_frames=True)
     with RecordingReader(recordings['friction'], model.wheel_names) as reader:
         for chunk in reader.chunks():
             physics.feed(chunk)

@@ -11,7 +11,8 @@ from youbot_fdi.bag.salvage import storage_files
 from youbot_fdi.bag.writer import RecordingWriter
 from youbot_fdi.cli.main import main
 from youbot_fdi.cli.status import DAMAGED, ERROR
-from youbot_fdi.fdi.pipeline import build_pipeline
+from youbot_fdi.app.config import build_pipeline
+from youbot_fdi.app.replay import replay_recording
 from youbot_fdi.model import load_model
 from youbot_fdi.model.scenario import load_script
 from youbot_fdi.tmcm.recordings import record_drive
@@ -32,7 +33,7 @@ def intact(request, tmp_path_factory, model):
     path = tmp_path_factory.mktemp(request.param) / 'drive'
     record_drive(path, model, load_script(duration=DRIVE)[1], fault='stuck', wheel=WHEEL,
                  fault_time=FAULT_AT, storage=request.param)
-    return path, build_pipeline()[1].replay(path).events
+    return path, replay_recording(build_pipeline()[1], path).events
 
 
 def cut(source, target, fraction):
@@ -124,7 +125,7 @@ def test_stamps_going_backwards_repeated_or_gapped_are_counted(tmp_path, model, 
         for k, stamp in enumerate(stamps):
             writer.joint_state(200.0 + 0.01 * k, *rng.normal(scale=0.05, size=(3, 4)),
                                header_stamp=stamp)
-    result = build_pipeline()[1].replay(path)
+    result = replay_recording(build_pipeline()[1], path)
     others = {c for c in ('stamps_backwards', 'stamps_repeated', 'gaps') if c != counter}
     assert result.counters[counter] == 1 and all(result.counters[c] == 0 for c in others)
     assert main(['replay', str(path), '--events', str(tmp_path / 'e.jsonl')]) == 0

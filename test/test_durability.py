@@ -19,7 +19,7 @@ KILL_AFTER = 2  # events reported before the kill
 # right after reporting its KILL_AFTER-th event.
 KILLED_REPLAY = """
 import os, signal, sys
-from youbot_fdi.fdi import eventlog
+from youbot_fdi.app import eventlog
 write = eventlog.EventLog.write
 def write_then_die(self, event):
     write(self, event)
@@ -39,8 +39,9 @@ def test_a_killed_replay_keeps_every_event_it_had_reported(tmp_path):
     path = tmp_path / 'drive'
     record_drive(path, load_model('youbot'), load_script(duration=10.0)[1], fault='friction',
                  wheel='wheel_joint_fl', fault_time=1.0, more_faults=[('stuck', 'wheel_joint_br', 5.0)])
-    from youbot_fdi.fdi.pipeline import build_pipeline
-    whole = [e.to_dict() for e in build_pipeline()[1].replay(path).events]
+    from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.replay import replay_recording
+    whole = [e.to_dict() for e in replay_recording(build_pipeline()[1], path).events]
     assert len(whole) > KILL_AFTER  # the kill comes before the end
     events = tmp_path / 'events.jsonl'
     result = subprocess.run([sys.executable, '-c', KILLED_REPLAY, str(path), str(events),

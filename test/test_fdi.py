@@ -11,7 +11,8 @@ import pytest
 
 from youbot_fdi.bag import RecordingError, RecordingReader, RecordingWriter
 from youbot_fdi.cli.main import main
-from youbot_fdi.fdi.pipeline import build_pipeline
+from youbot_fdi.app.config import build_pipeline
+from youbot_fdi.app.replay import replay_recording
 from youbot_fdi.model import load_model, load_profile
 from youbot_fdi.model.scenario import DriveScript, load_script
 from youbot_fdi.tmcm.recordings import DEFAULT_START_STAMP, record_drive
@@ -59,7 +60,7 @@ def settled(alarms):
 
 def replay(path, params=None):
     _, pipeline = build_pipeline(params)
-    return pipeline.replay(path).events
+    return replay_recording(pipeline, path).events
 
 
 def test_nominal_drive_raises_no_alarm(recordings):
@@ -209,7 +210,8 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
 def test_identify_measures_the_input_delay(tmp_path, model):
     """A base that reports 40 ms late looks like commands acting 40 ms later; identify finds it
     within the grid step plus a sample, and the FDI, predicting with it, stays quiet."""
-    from youbot_fdi.fdi.identify import delay_grid, fit_input_delay, read_arrays
+    from youbot_fdi.app.recordings import read_arrays
+    from youbot_fdi.fdi.identify import delay_grid, fit_input_delay
     found = {}
     for late in (0.0, 0.04):
         path = record_drive(tmp_path / f'late_{late}', model, SCRIPT, measurement_delay=late).path
@@ -344,7 +346,7 @@ def test_a_wheel_that_reads_frozen_while_its_current_changes_is_an_encoder_freez
     """Both look like a wheel that does not turn for its torque; only frozen readings with a fresh
     current tell the sensor from the wheel."""
     from youbot_fdi.fdi.decision import DecisionMaker
-    from youbot_fdi.fdi.pipeline import load_residual_data
+    from youbot_fdi.app.config import load_residual_data
     from youbot_fdi.fdi.residuals import FAMILIES, ResidualFrame
     settings = FdiSettings()
     decision = DecisionMaker(model.wheel_names, settings, load_residual_data())

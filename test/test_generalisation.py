@@ -9,7 +9,9 @@ import pytest
 from youbot_fdi.bench.independent_sim import simulate
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.observer import signed_torque
-from youbot_fdi.fdi.pipeline import build_pipeline, FdiPipeline, load_residual_data
+from youbot_fdi.app.config import build_pipeline, load_residual_data, residual_data_for
+from youbot_fdi.app.replay import replay_recording
+from youbot_fdi.fdi.pipeline import FdiPipeline
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualFrame, ResidualGenerator
 from youbot_fdi.samples import message_time
 from youbot_fdi.fdi.settings import FdiSettings
@@ -47,7 +49,7 @@ def calibrated(tmp_path_factory):
 
 
 def errors(path, params):
-    return [e for e in build_pipeline(params)[1].replay(path).events if e.level == 'ERROR']
+    return [e for e in replay_recording(build_pipeline(params)[1], path).events if e.level == 'ERROR']
 
 
 # ---------------------------------------------------------------------- the clock rule
@@ -85,7 +87,8 @@ def test_commands_stamped_before_with_or_after_their_samples_give_no_false_alarm
 def test_identify_learns_a_negative_delay_for_commands_stamped_late(tmp_path, model):
     """Commands stamped a sample after the samples they produce: the input delay comes out at or
     below zero and the command path still predicts the wheels."""
-    from youbot_fdi.fdi.identify import delay_grid, fit_input_delay, read_arrays
+    from youbot_fdi.app.recordings import read_arrays
+    from youbot_fdi.fdi.identify import delay_grid, fit_input_delay
     simulate(tmp_path / 'late', DRIVE, seed=3, stamping='after', delay=0.0)
     simulate(tmp_path / 'early', DRIVE, seed=3, stamping='before', delay=0.0)
     late = fit_input_delay(model, read_arrays(tmp_path / 'late', model), delay_grid(0.02))[0]
@@ -238,7 +241,7 @@ def test_a_frozen_encoder_is_found_at_a_low_rate(tmp_path, model, calibrated):
 def test_a_surface_change_on_every_wheel_is_a_warning_not_a_fault(tmp_path, calibrated):
     _, params = calibrated
     simulate(tmp_path / 'surface', DRIVE, seed=9, surface_factor=1.8, surface_time=3.0)
-    events = build_pipeline(params)[1].replay(tmp_path / 'surface').events
+    events = replay_recording(build_pipeline(params)[1], tmp_path / 'surface').events
     assert [e for e in events if e.level == 'ERROR'] == []
     warnings = [e for e in events if e.level == 'WARN']
     assert warnings and warnings[0].fault == 'load_change' and warnings[0].wheel is None
@@ -309,6 +312,7 @@ def test_the_contact_law_explains_real_omni_wheel_currents_better(tmp_path, monk
     alone: identified on green runs at 0° and 90° at every speed, the contact law (roller_friction_ratio > 0) is
     chosen, and on held-out green runs in other directions (15°, 45°, 75° at 0.2 m/s) its torque
     residual is smaller than per-wheel Coulomb friction's, fitted on the same recording."""
+    from youbot_fdi.app.recordings import identify_recording, read_arrays
     from youbot_fdi.fdi import identify as identification
     from youbot_fdi.model.profile import PlatformModel
     from youbot_fdi.settings import load_settings
@@ -322,9 +326,9 @@ def test_the_contact_law_explains_real_omni_wheel_currents_better(tmp_path, monk
 
     def held_out_rms(ratios):
         monkeypatch.setattr(identification, 'ROLLER_RATIOS', ratios)
-        result = identification.identify(tmp_path / 'cal', model, settings, fit_gains=False, learn=False)
+        result = identify_recording(tmp_path / 'cal', model, settings, fit_gains=False, learn=False)
         fitted = PlatformModel(result.profile)
-        arrays = identification.read_arrays(tmp_path / 'held_out', fitted)
+        arrays = read_arrays(tmp_path / 'held_out', fitted)
         torque = identification.run_generator(fitted, arrays, settings).values['torque']
         return (result.profile.dynamics.roller_friction_ratio, float(np.sqrt(np.nanmean(torque ** 2))),
                 result.fdi['contact_share_floor'])
@@ -346,7 +350,7 @@ def test_unsigned_effort_is_signed_by_the_explained_torque(model):
     generator = ResidualGenerator(unsigned, FdiSettings())
     signs = signed_torque(np.array([0.5, 0.5]), np.array([-0.2, 0.3]), generator.observer.signed_effort)
     assert signs.tolist() == [-0.5, 0.5]
-    assert FdiPipeline(unsigned).generator.observer.signed_effort is False
+    assert FdiPipeline(unsigned, FdiSettings(), residual_data_for(unsigned, FdiSettings())).generator.observer.signed_effort is False
 
 
 # ---------------------------------------------------------------------- re-sent messages

@@ -45,19 +45,27 @@ def bad_messages(stamp):
             message(stamp - 5.0)]  # stamped 5 s in the past
 
 
-def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
+def fdi_nodes(harness, diagnostics_wanted):
+    """The observer, residual generator and decision in ``harness``, and what the probe hears:
+    (generator node, decision node, fault events, /diagnostics statuses that
+    ``diagnostics_wanted(status)`` accepts, residual messages)."""
     harness.add(ObserverNode(context=harness.context))
-    harness.add(ResidualGeneratorNode(context=harness.context))
+    generator = harness.add(ResidualGeneratorNode(context=harness.context))
     decision = harness.add(DecisionNode(context=harness.context))
-    faults, warnings, residuals = [], [], []
+    faults, statuses, residuals = [], [], []
     probe = harness.probe
     probe.create_subscription(DiagnosticArray, '/youbot_fdi/faults',
                               lambda m: faults.extend(event_from_status(s) for s in m.status), LATCHED_QOS)
-    probe.create_subscription(
-        DiagnosticArray, '/diagnostics',
-        lambda m: warnings.extend(s for s in m.status if s.level == DiagnosticStatus.WARN
-                                  and s.name.endswith(': input')), 10)
+    probe.create_subscription(DiagnosticArray, '/diagnostics',
+                              lambda m: statuses.extend(filter(diagnostics_wanted, m.status)), 10)
     probe.create_subscription(JointState, '/youbot_fdi/residuals', residuals.append, 10)
+    return generator, decision, faults, statuses, residuals
+
+
+def test_bad_messages_are_named_on_diagnostics_and_raise_no_fault(harness):
+    _, decision, faults, warnings, residuals = fdi_nodes(
+        harness, lambda s: s.level == DiagnosticStatus.WARN and s.name.endswith(': input'))
+    probe = harness.probe
     joints = probe.create_publisher(JointState, '/joint_states', 10)
     commands = probe.create_publisher(JointState, '/wheel_commands', 10)
     count = [0]
@@ -105,17 +113,9 @@ def test_fdi_nodes_behind_a_flowing_base_are_a_pipeline_warn_not_a_base_comm_los
     decision says so as a WARN ``pipeline`` status on /diagnostics and raises no fault; when the
     base itself then falls silent, that is its comm_loss, stamped ``data_timeout`` after the
     newest sample it sent."""
-    harness.add(ObserverNode(context=harness.context))
-    generator = harness.add(ResidualGeneratorNode(context=harness.context))
-    decision = harness.add(DecisionNode(context=harness.context))
-    faults, pipeline, residuals = [], [], []
+    generator, decision, faults, pipeline, residuals = fdi_nodes(
+        harness, lambda s: s.name.endswith('decision: pipeline'))
     probe = harness.probe
-    probe.create_subscription(DiagnosticArray, '/youbot_fdi/faults',
-                              lambda m: faults.extend(event_from_status(s) for s in m.status), LATCHED_QOS)
-    probe.create_subscription(
-        DiagnosticArray, '/diagnostics',
-        lambda m: pipeline.extend(s for s in m.status if s.name.endswith('decision: pipeline')), 10)
-    probe.create_subscription(JointState, '/youbot_fdi/residuals', residuals.append, 10)
     joints = probe.create_publisher(JointState, '/joint_states', 10)
     commands = probe.create_publisher(JointState, '/wheel_commands', 10)
     newest = [0.0]

@@ -118,9 +118,8 @@ def test_identify_learns_and_physics_only_does_not(tmp_path):
     import yaml
     from youbot_fdi.bench.independent_sim import simulate
     from youbot_fdi.cli.main import main
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.app.config import build_pipeline, configure
     from youbot_fdi.fdi.settings import FdiSettings
-    from youbot_fdi.fdi.pipeline import configure
     from youbot_fdi.fdi.residuals import ResidualGenerator
     drive = [(0.3, 0.0, 0.0, 1.5), (-0.3, 0.0, 0.0, 1.5), (0.0, 0.25, 0.0, 1.5), (0.0, -0.25, 0.0, 1.5),
              (0.0, 0.0, 0.9, 1.5), (0.0, 0.0, -0.9, 1.5)] * 2
@@ -148,8 +147,10 @@ def test_the_learned_correction_lowers_the_spread_on_held_back_drives(tmp_path):
 
     from youbot_fdi.bench.independent_sim import simulate
     from youbot_fdi.cli.main import main
-    from youbot_fdi.fdi.identify import read_arrays, run_generator
-    from youbot_fdi.fdi.pipeline import build_pipeline, configure
+    from youbot_fdi.app.recordings import read_arrays
+    from youbot_fdi.fdi.identify import run_generator
+    from youbot_fdi.app.config import build_pipeline, configure
+    from youbot_fdi.app.replay import replay_recording
     from youbot_fdi.settings import load_settings
     from youbot_fdi.fdi.settings import FdiSettings
     drive = [(0.3, 0.0, 0.0, 1.5), (0.0, 0.25, 0.0, 1.5), (0.0, 0.0, 0.9, 1.5), (0.2, -0.2, 0.0, 1.5),
@@ -166,7 +167,7 @@ def test_the_learned_correction_lowers_the_spread_on_held_back_drives(tmp_path):
         spread = {name: np.sqrt(np.nanmean(run_generator(model, arrays, variant).values['torque'] ** 2))
                   for name, variant in variants.items()}
         assert spread['learned'] < 0.97 * spread['physics']  # 5-6 % here
-        assert [e for e in build_pipeline(params)[1].replay(tmp_path / f'held_back{seed}').events
+        assert [e for e in replay_recording(build_pipeline(params)[1], tmp_path / f'held_back{seed}').events
                 if e.level == 'ERROR'] == []
 
 
@@ -211,7 +212,8 @@ def test_a_recording_outside_the_calibrated_range_falls_back_and_warns(tmp_path)
     and no alarm. The slow drive itself raises no such WARN."""
     from youbot_fdi.bench.independent_sim import simulate
     from youbot_fdi.cli.main import main
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.replay import replay_recording
     from youbot_fdi.faults import UNSEEN_OPERATING_POINT
     slow = [(0.15, 0.0, 0.0, 1.5), (0.0, 0.12, 0.0, 1.5), (0.0, 0.0, 0.45, 1.5), (0.1, -0.1, 0.0, 1.5),
             (-0.12, 0.05, -0.25, 1.5), (0.0, 0.0, 0.0, 0.5)] * 2
@@ -223,7 +225,7 @@ def test_a_recording_outside_the_calibrated_range_falls_back_and_warns(tmp_path)
             (0.1, 0.0, 0.0, 2.0)]
     simulate(tmp_path / 'fast', fast, seed=2, mode='effort')
     pipeline = build_pipeline(params, keep_frames=True)[1]
-    events = pipeline.replay(tmp_path / 'fast').events
+    events = replay_recording(pipeline, tmp_path / 'fast').events
     unseen = [e for e in events if e.fault == UNSEEN_OPERATING_POINT]
     assert [e.level for e in unseen][:2] == ['WARN', 'OK'] and unseen[0].wheel is None
     assert 'beyond what calibration covered' in unseen[0].detail and 'without the learned correction' in unseen[0].detail
@@ -232,7 +234,7 @@ def test_a_recording_outside_the_calibrated_range_falls_back_and_warns(tmp_path)
     outside = frames.outside_calibration > 0
     assert outside.any() and not outside.all()
     assert unseen[0].stamp == frames.stamp[np.flatnonzero(outside)[0]]
-    assert not [e for e in build_pipeline(params)[1].replay(tmp_path / 'slow').events
+    assert not [e for e in replay_recording(build_pipeline(params)[1], tmp_path / 'slow').events
                 if e.fault == UNSEEN_OPERATING_POINT]
     # The replay report shows the residual, its bound and the learned part against the speed.
     report = tmp_path / 'report'

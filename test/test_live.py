@@ -6,7 +6,8 @@ import pytest
 pytest.importorskip('rclpy')
 
 from fresh_process import in_fresh_process, run_demo_fresh  # noqa: E402
-from youbot_fdi.fdi.pipeline import build_pipeline  # noqa: E402
+from youbot_fdi.app.config import build_pipeline  # noqa: E402
+from youbot_fdi.app.replay import replay_recording  # noqa: E402
 from youbot_fdi.fdi.reactions import ReactionSettings  # noqa: E402
 from youbot_fdi.model.scenario import load_script  # noqa: E402
 from youbot_fdi.nodes.demo import DemoPlan  # noqa: E402
@@ -35,7 +36,7 @@ def test_injected_fault_is_detected_and_isolated_live(tmp_path):
 
     # Offline replay of what the nodes saw gives the same decisions.
     _, pipeline = build_pipeline()
-    offline = alarms(pipeline.replay(tmp_path / 'live').events)
+    offline = alarms(replay_recording(pipeline, tmp_path / 'live').events)
     assert [(e.wheel, e.fault) for e in offline] == [(e.wheel, e.fault) for e in found]
     assert offline[0].stamp == pytest.approx(found[0].stamp, abs=0.011)  # within one sample
 
@@ -200,7 +201,7 @@ def test_events_before_the_drive_are_kept_apart_and_logged(tmp_path):
     drive) is kept in before_drive, not among the drive's events; the events file has both."""
     from types import SimpleNamespace
     from youbot_fdi.fdi.decision import FaultEvent
-    from youbot_fdi.fdi.eventlog import EventLog
+    from youbot_fdi.app.eventlog import EventLog
     from youbot_fdi.nodes.demo import DemoDriverNode
     log = EventLog(tmp_path / 'events.jsonl')
     driver = SimpleNamespace(start=None, before_drive=[], events=[], log=log)

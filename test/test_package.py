@@ -133,15 +133,17 @@ def test_every_node_parameter_file_loads_into_its_settings():
 
 
 def test_imports_run_downward():
-    """Every import runs downward: cli and bench -> nodes, fleet -> fdi, tmcm, structure, bag ->
-    model and the top-level helpers (samples, topics, settings, faults, errors), at module level or
-    inside a function."""
+    """Every import runs downward: cli and bench -> nodes, fleet -> app (the only layer below them
+    that opens recordings, configuration and output files) -> fdi, tmcm, structure, bag -> model
+    and the top-level helpers (samples, topics, settings, naming, faults, errors), at module level
+    or inside a function. The FDI core takes arrays: fdi never imports bag."""
     import ast
     adapters = ('cli', 'bench', 'nodes', 'fleet')
     above = {  # a layer may not import these
-        'model': adapters + ('fdi', 'tmcm', 'structure', 'bag'),
-        'bag': adapters + ('fdi', 'tmcm', 'structure'),
-        'fdi': adapters, 'tmcm': adapters, 'structure': adapters,
+        'model': adapters + ('app', 'fdi', 'tmcm', 'structure', 'bag'),
+        'bag': adapters + ('app', 'fdi', 'tmcm', 'structure'),
+        'fdi': adapters + ('app', 'bag'), 'tmcm': adapters + ('app',),
+        'structure': adapters + ('app',), 'app': adapters,
         'nodes': ('cli', 'bench', 'fleet'), 'fleet': ('cli', 'bench', 'nodes'),
     }
     offenders = []
@@ -149,7 +151,7 @@ def test_imports_run_downward():
         relative = path.relative_to(REPO / 'youbot_fdi').parts
         layer = relative[0] if len(relative) > 1 else 'helpers'
         forbidden = tuple(f'youbot_fdi.{name}' for name in above.get(
-            layer, adapters + ('fdi', 'tmcm', 'structure', 'bag', 'model')))
+            layer, adapters + ('app', 'fdi', 'tmcm', 'structure', 'bag', 'model')))
         if layer in ('cli', 'bench'):
             continue
         for node in ast.walk(ast.parse(path.read_text())):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from youbot_fdi.fdi.decision import DecisionMaker
-from youbot_fdi.fdi.pipeline import load_residual_data
+from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, FROZEN_NOISE_SIGMAS,
                                       PRIOR_SETTINGS, ResidualEvaluator, ResidualFrame, bound_weights)
 from youbot_fdi.fdi.settings import FdiSettings

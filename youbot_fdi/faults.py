@@ -14,6 +14,16 @@ class FaultKind(str, enum.Enum):
     UNKNOWN = 'unknown'  # detected, not identified
 
 
+class Level(enum.StrEnum):
+    """An event's level (CONTRACT.md ``"level"``). A ``str``: events serialise and compare as the
+    plain words they are in the events file."""
+
+    OK = 'OK'  # the component is healthy again (a fault or condition cleared)
+    WARN = 'WARN'  # a condition, not a fault (load_change, unseen_operating_point)
+    ERROR = 'ERROR'  # a fault: an alarm
+    INFO = 'INFO'  # a reaction's line in the events file (youbot_fdi/fdi/reactions.py)
+
+
 #: Not a fault: the platform-wide friction/load condition changed (floor covering, payload, slope).
 #: Reported as a WARN event not tied to a wheel, with the factor in its detail.
 LOAD_CHANGE = 'load_change'

@@ -13,11 +13,11 @@ VARIANTS = ('learned', 'physics')  # the first is the product's default
 def calibrate(recording, prior, out_stem, settings=None):
     """``identify`` ``recording`` from the ``prior`` model; returns ({variant: parameter file},
     IdentificationResult). Files are written beside ``out_stem`` (``<stem>_<variant>.yaml``)."""
-    from youbot_fdi.fdi.identify import identify
+    from youbot_fdi.app.recordings import identify_recording
     from youbot_fdi.fdi.settings import FdiSettings
     from youbot_fdi.model.profile import save_profile
     from youbot_fdi.settings import load_settings
-    result = identify(recording, prior, settings or load_settings(FdiSettings, 'fdi'))
+    result = identify_recording(recording, prior, settings or load_settings(FdiSettings, 'fdi'))
     paths = {}
     for variant in VARIANTS:
         profile = result.profile if variant == 'learned' else replace(result.profile, learned=None)

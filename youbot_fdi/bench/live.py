@@ -18,6 +18,8 @@ import subprocess
 import sys
 import tempfile
 
+from youbot_fdi.faults import Level
+
 #: A soak's default length [min] (issue 33: ten minutes of the fault-free demo drive).
 SOAK_MINUTES = 10.0
 #: Wall time allowed per run beyond its drive [s]: the node processes start, the drive settles.
@@ -52,7 +54,7 @@ class LiveRun:
     def alarms(self):
         """Every ERROR event of the run, the start-up's included."""
         return ([a for a in self.summary['alarms']]
-                + [e for e in self.summary['before_drive'] if e.get('level') == 'ERROR'])
+                + [e for e in self.summary['before_drive'] if e.get('level') == Level.ERROR])
 
     @property
     def first_alarm(self):

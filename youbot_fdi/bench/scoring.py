@@ -8,10 +8,10 @@ import math
 
 import numpy as np
 
-from youbot_fdi.faults import LOAD_CHANGE, UNSEEN_OPERATING_POINT
+from youbot_fdi.faults import Level, LOAD_CHANGE, UNSEEN_OPERATING_POINT
 from youbot_fdi.fdi.lifecycle import closest_events
 
-ERROR = 'ERROR'
+ERROR = Level.ERROR
 #: The type named for an episode is its last ERROR on that wheel within this time of the first [s]
 #: (a type may be refined once the classification window is full).
 NAMING_WINDOW = 0.55
@@ -55,8 +55,8 @@ def score(case, events):
             'named_as': named,
             'delay': (max(0.0, first.stamp - case.onset) if first is not None
                       and not math.isnan(case.onset) else math.nan),  # onset NaN: never visible
-            'warnings': sum(e.level == 'WARN' and e.fault == LOAD_CHANGE for e in events),
-            'unseen_warnings': sum(e.level == 'WARN' and e.fault == UNSEEN_OPERATING_POINT
+            'warnings': sum(e.level == Level.WARN and e.fault == LOAD_CHANGE for e in events),
+            'unseen_warnings': sum(e.level == Level.WARN and e.fault == UNSEEN_OPERATING_POINT
                                    for e in events),
             'closest_events': closest_events(events)}
 
@@ -118,10 +118,11 @@ def replay_scored(case, params):
     """Replay ``case`` with each variant's parameter file ({variant: path}); {variant: result
     dict}, a fault-free run's with its residual spread (``spread``, held back from calibration:
     the ablation pools it)."""
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.replay import replay_recording
     out = {}
     for variant, file in params.items():
-        replayed = build_pipeline(file)[1].replay(case.path)
+        replayed = replay_recording(build_pipeline(file)[1], case.path)
         out[variant] = {**score(case, replayed.events),
                         'spread': replayed.spread if case.fault is None else None}
     return out

@@ -131,12 +131,13 @@ def _timed_replay(path, params):
     """Replay and decode-only times [s] of one recording: the best of ``TIMING_REPEATS`` runs
     each, so one-time costs (imports, rosbags' generated decoders) and noise do not count."""
     from youbot_fdi.bag.reader import RecordingReader
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.replay import replay_recording
     replay_times, decode_times = [], []
     for _ in range(TIMING_REPEATS):
         model, pipeline = build_pipeline(params)
         started = time.perf_counter()
-        pipeline.replay(path)
+        replay_recording(pipeline, path)
         replay_times.append(time.perf_counter() - started)
         started = time.perf_counter()
         with RecordingReader(path, model.wheel_names) as reader:

@@ -10,6 +10,8 @@ import uuid
 
 import numpy as np
 
+from youbot_fdi.faults import Level
+
 
 @dataclass(frozen=True)
 class BenchResult:
@@ -202,7 +204,9 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
     from pathlib import Path
     from youbot_fdi.bag.reader import RecordingReader
     from dataclasses import replace
-    from youbot_fdi.fdi.pipeline import build_pipeline, FdiPipeline
+    from youbot_fdi.app.config import build_pipeline, residual_data_for
+    from youbot_fdi.app.replay import replay_recording
+    from youbot_fdi.fdi.pipeline import FdiPipeline
     results = []
     with tempfile.TemporaryDirectory(prefix='youbot_fdi_bench_') as tmp:
         cases, identified = _replay_recordings(Path(tmp), progress, seconds)
@@ -217,10 +221,10 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
 
             def replay():
                 events.clear()
-                build_pipeline(params)[1].replay(path, on_event=events.append)
+                replay_recording(build_pipeline(params)[1], path, on_event=events.append)
 
             decoded, replayed = _best_time(decode), _best_time(replay)
-            alarms = sorted({e.wheel for e in events if e.level == 'ERROR'}, key=str)
+            alarms = sorted({e.wheel for e in events if e.level == Level.ERROR}, key=str)
             with RecordingReader(path, model.wheel_names) as reader:
                 messages = reader.message_count
             results.append(BenchResult(f'replay: {name}', replayed, 's', 'rosbags decode-only',
@@ -238,7 +242,8 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
         def live(physics_only=False):
             _, pipeline = build_pipeline(params)
             if physics_only:
-                pipeline = FdiPipeline(model, replace(pipeline.settings, physics_only=True))
+                settings = replace(pipeline.settings, physics_only=True)
+                pipeline = FdiPipeline(model, settings, residual_data_for(model, settings))
             generator, decision = pipeline.generator, pipeline.decision
             with RecordingReader(path, model.wheel_names) as reader:
                 for sample in reader.samples():

@@ -1,7 +1,7 @@
 """``youbot-fdi demo``: the main job, live: a virtual youBot, the driver shim and every FDI node."""
 import sys
 
-from youbot_fdi.faults import INJECTABLE
+from youbot_fdi.faults import INJECTABLE, Level
 
 NAME = 'demo'
 DEFAULT_FAULT = 'torque_loss'
@@ -127,7 +127,7 @@ def run(args):
           + (f'{fault} on {args.wheel} at {args.at:g} s' if fault else 'no fault injected'), flush=True)
     run = run_demo(plan, args.events)
     events, injected_at = run.events, run.injected_at
-    alarms = [e for e in events if e.level == 'ERROR']
+    alarms = [e for e in events if e.level == Level.ERROR]
     print('\nsummary:')
     if fault is None:
         print(f'  fault-free drive: {len(alarms)} alarms' + (' (none expected)' if alarms else ''))

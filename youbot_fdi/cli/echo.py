@@ -24,7 +24,7 @@ def add_parser(subparsers):
 def run(args):
     from contextlib import nullcontext
 
-    from youbot_fdi.fdi.eventlog import EventLog
+    from youbot_fdi.app.eventlog import EventLog
     from youbot_fdi.nodes.echo import echo_faults
     with (EventLog(args.events) if args.events else nullcontext()) as log:
         def write(event):

@@ -71,9 +71,9 @@ def run(args):
 
 
 def _identify(bag, profile, output):
-    from youbot_fdi.fdi.identify import identify
+    from youbot_fdi.app.recordings import identify_recording
     from youbot_fdi.fdi.settings import FdiSettings
     from youbot_fdi.model.profile import load_model, save_profile
     from youbot_fdi.settings import load_settings
-    result = identify(bag, load_model(profile), load_settings(FdiSettings, 'fdi'))
+    result = identify_recording(bag, load_model(profile), load_settings(FdiSettings, 'fdi'))
     return save_profile(result.profile, output / 'params.yaml')

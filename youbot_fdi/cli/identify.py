@@ -41,13 +41,13 @@ def add_parser(subparsers):
 def run(args):
     import numpy as np
 
-    from youbot_fdi.fdi.identify import identify
+    from youbot_fdi.app.recordings import identify_recording
     from youbot_fdi.fdi.settings import FdiSettings
     from youbot_fdi.model.profile import load_model, save_profile
     from youbot_fdi.settings import load_settings
     settings = load_settings(FdiSettings, 'fdi')
-    result = identify(args.bag, load_model(args.profile), settings, fit_gains=not args.no_gains,
-                      learn=not args.physics_only)
+    result = identify_recording(args.bag, load_model(args.profile), settings,
+                                fit_gains=not args.no_gains, learn=not args.physics_only)
     profile = result.profile
     save_profile(profile, args.output)
     dyn = profile.dynamics
@@ -108,7 +108,7 @@ def run(args):
     print(f'  sample interval {1000 * result.fdi["sample_interval"]:.1f} ms (comm_loss after '
           f'{1000 * max(settings.comm_timeout, settings.comm_timeout_intervals * result.fdi["sample_interval"]):.0f} ms without data)')
     if args.plot:
-        from youbot_fdi.fdi.report import plot_friction_sweep
+        from youbot_fdi.app.report import plot_friction_sweep
         plot_friction_sweep(result.sweep, Path(args.plot))
         print(f'friction sweep figure: {args.plot}')
     print(f'parameters: {args.output}')

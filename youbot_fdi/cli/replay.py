@@ -4,6 +4,7 @@ import sys
 import time
 
 from youbot_fdi.cli.status import DAMAGED
+from youbot_fdi.faults import Level
 from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
 
 NAME = 'replay'
@@ -43,8 +44,9 @@ def _progress(done, total, started):
 
 def run(args):
     from youbot_fdi.bag.reader import RecordingError
-    from youbot_fdi.fdi.eventlog import EventLog
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.app.eventlog import EventLog
+    from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.replay import replay_recording
     from youbot_fdi.fdi.observer import STAMP_COUNTERS
     model, pipeline = build_pipeline(args.params, args.fdi_config, keep_frames=bool(args.report))
     events_path = Path(args.events)
@@ -68,7 +70,7 @@ def run(args):
                     print(file=sys.stderr)
 
         try:
-            result = pipeline.replay(args.bag, args.joint_topic, args.command_topic, keep, progress)
+            result = replay_recording(pipeline, args.bag, args.joint_topic, args.command_topic, keep, progress)
         except RecordingError as err:
             error = err
     elapsed = time.perf_counter() - started
@@ -76,7 +78,7 @@ def run(args):
         print(f'youbot-fdi replay: error: {error} ({len(found)} events kept in {events_path})',
               file=sys.stderr)
         return 1
-    alarms = [e for e in found if e.level == 'ERROR']
+    alarms = [e for e in found if e.level == Level.ERROR]
     counters = result.counters
     if result.damage is not None:
         print(f'{args.bag}: {result.damage.describe()}', file=sys.stderr)
@@ -93,7 +95,7 @@ def run(args):
     for event in alarms:
         print(f'  {event.stamp:.3f} {event.level} {event.wheel} {event.fault}')
     if args.report:
-        from youbot_fdi.fdi.report import write_report
+        from youbot_fdi.app.report import write_report
         index = write_report(Path(args.report), model, pipeline, found, args.bag)
         print(f'report: {index}')
     return DAMAGED if result.damage is not None and result.damage.lost else 0

@@ -49,14 +49,14 @@ import json
 import numpy as np
 
 from youbot_fdi.errors import ConfigError
-from youbot_fdi.faults import FaultKind, LOAD_CHANGE, UNSEEN_OPERATING_POINT
+from youbot_fdi.faults import FaultKind, Level, LOAD_CHANGE, UNSEEN_OPERATING_POINT
 from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
 from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum, last_true_value
 from youbot_fdi.fdi.residuals import FAMILIES
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.naming import wheel_suffix
 
-OK, WARN, ERROR = 'OK', 'WARN', 'ERROR'
+OK, WARN, ERROR = Level.OK, Level.WARN, Level.ERROR  # short names for this module
 TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'encoder'))
 #: Families judged against the other wheels, and the share of the threshold that counts as evidence.
 SHARED_FAMILIES = [TORQUE, COMMAND]

@@ -34,7 +34,6 @@ import scipy.optimize
 import scipy.signal
 import scipy.sparse
 
-from youbot_fdi.bag.reader import RecordingReader
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi import alarm_rate
 from youbot_fdi.fdi.learned import fit_torque_correction, inertial_feature
@@ -43,8 +42,7 @@ from youbot_fdi.fdi.residuals import (BOUND_TERMS, bound_weights, FAMILIES, Resi
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.dynamics import rolling_share
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
-from youbot_fdi.samples import CommandBatch, JointBatch, RepeatedMessages
-from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
+from youbot_fdi.samples import CommandBatch, JointBatch
 
 SAVGOL_WINDOW = 9  # samples
 SAVGOL_ORDER = 2
@@ -94,25 +92,12 @@ class RecordingArrays:
     damage: object = None  # youbot_fdi.bag.salvage.Damage of a damaged recording (read in part)
 
 
-def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMANDS):
-    """Read a recording into :class:`RecordingArrays` (a damaged one as far as it can be read)."""
-    signs = model.kinematics.drive_signs
-    rows, commands = [], []
-    with RecordingReader(path, model.wheel_names, joint_topic, command_topic) as reader:
-        for sample in reader.samples():
-            if hasattr(sample, 'kind'):
-                commands.append(sample)
-            else:
-                rows.append((sample.stamp, signs * sample.position, signs * sample.velocity,
-                             signs * sample.effort))
-        damage = reader.damage
-    if len(rows) < MIN_SAMPLES:
-        msg = f'{path}: {len(rows)} usable joint states; identification needs at least {MIN_SAMPLES}'
+def require_samples(count, source=''):
+    """Raise :class:`IdentificationError` unless ``count`` joint states are enough to identify."""
+    if count < MIN_SAMPLES:
+        msg = (f'{source or "recording"}: {count} usable joint states; identification needs at '
+               f'least {MIN_SAMPLES}')
         raise IdentificationError(msg)
-    rows.sort(key=lambda r: r[0])
-    joints = JointBatch(*(np.array([r[k] for r in rows]) for k in range(4)))
-    joints = joints.select(RepeatedMessages().fresh(joints))  # re-sent messages carry nothing
-    return RecordingArrays(joints.stamp, joints.position, joints.velocity, joints.effort, commands, damage)
 
 
 def _smooth(values, dt, deriv=0):
@@ -441,15 +426,14 @@ def _learned_bound(evaluator, family, batch):
                     evaluator.bound('effort', batch.features['effort']))
 
 
-def false_alarm_rates(model, batch, settings):
+def false_alarm_rates(model, batch, settings, residual_data):
     """Per test of :data:`RATE_TESTS`, the :class:`~youbot_fdi.fdi.alarm_rate.RateEstimate` of
     its CUSUM on this nominal recording's held-out scores (:func:`held_out_scores`), with the
-    decision's increments (sample weights, cap, drift)."""
+    decision's increments (sample weights, cap, drift); ``residual_data`` the decision's residual
+    set."""
     from youbot_fdi.fdi.decision import DecisionMaker
-    from youbot_fdi.fdi.pipeline import load_residual_data
     scores, torque_bound, torque_scale = held_out_scores(model, batch, settings)
-    decision = DecisionMaker(model.wheel_names, settings, load_residual_data(settings.residual_file or None,
-                                                                              model.wheel_names))
+    decision = DecisionMaker(model.wheel_names, settings, residual_data)
     weight = decision.sample_weights(batch.stamp)
     interval = float(np.median(np.diff(batch.stamp))) if len(batch) > 1 else settings.evidence_interval
     breaking = decision._breaking_away(batch.velocity, batch.stamp)
@@ -536,10 +520,13 @@ class IdentificationResult:
     damage: object = None  # youbot_fdi.bag.salvage.Damage when the recording was read in part
 
 
-def identify(path, prior_model, settings, fit_gains=True, learn=True):
-    """Identify a model from the recording at ``path``, starting from ``prior_model``; with
-    ``learn``, also the learned corrections of the physics (issue 12) before the bounds."""
-    arrays = read_arrays(path, prior_model)
+def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn=True, source=''):
+    """Identify a model from a nominal recording's :class:`RecordingArrays`, starting from
+    ``prior_model``; with ``learn``, also the learned corrections of the physics (issue 12)
+    before the bounds. ``residual_data`` is the decision's residual set (for the stated
+    false-alarm rate); ``source`` names the recording in the result.
+    (:func:`youbot_fdi.app.recordings.identify_recording` reads a recording and calls this.)"""
+    require_samples(len(arrays.time), source)
     dynamics, info, _ = fit_dynamics(arrays, prior_model)
     interval = float(np.median(np.diff(arrays.time)))
     info['sample_period'] = interval
@@ -570,7 +557,8 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
         settings = replace(settings, input_delay=delay)
     physics = run_generator(model, arrays, settings)  # the residuals both fits below start from
     fdi, coverage = fit_bounds(physics, settings)
-    thresholds, stated = rate_thresholds(false_alarm_rates(model, physics, settings), settings)
+    thresholds, stated = rate_thresholds(false_alarm_rates(model, physics, settings, residual_data),
+                                        settings)
     fdi.update(thresholds)
     info['false_alarm_rate'] = {test: {'threshold': round(float(t), 4), 'per_hour': float(f'{r:.3g}')}
                                 for test, (t, r) in stated.items()}
@@ -589,7 +577,7 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
     fdi['contact_share_floor'] = settings.contact_share_floor
     if delay is not None:
         fdi['input_delay'] = delay
-    info.update({'recording': str(path), 'samples': int(len(arrays.time)),
+    info.update({'recording': source, 'samples': int(len(arrays.time)),
                  'duration_s': float(arrays.time[-1] - arrays.time[0]),
                  'commands': len(arrays.commands)})
     identification = {
@@ -602,6 +590,6 @@ def identify(path, prior_model, settings, fit_gains=True, learn=True):
         'bound_coverage': {family: round(share, 4) for family, share in coverage.items()},
     }
     profile = replace(model.profile, name=f'{prior_model.profile.name}_identified',
-                      description=f'identified from {path}', fdi=fdi, identification=identification)
+                      description=f'identified from {source}', fdi=fdi, identification=identification)
     return IdentificationResult(profile, nrmse_currents, nrmse_commands, sweep, fdi, info, coverage,
                                 arrays.damage)

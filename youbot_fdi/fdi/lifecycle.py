@@ -20,9 +20,9 @@ import math
 
 import numpy as np
 
-from youbot_fdi.faults import CONDITIONS
+from youbot_fdi.faults import CONDITIONS, Level
 
-OK = 'OK'
+OK = Level.OK
 FAULT_CHANNEL = 'fault'  # a wheel's faults, or the base's own (comm_loss): one channel each
 NEVER = -math.inf
 

@@ -37,7 +37,7 @@ from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mas
 from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, scalar_recursion
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, VELOCITY
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.naming import wheel_suffix
 
 #: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
 STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')

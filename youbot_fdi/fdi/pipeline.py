@@ -1,85 +1,13 @@
 """The FDI pipeline: residual generator + decision, fed a recording chunk by chunk.
 
-The same object serves the offline replay and the live nodes, so a recording replayed offline
-gives the same decisions as the nodes gave live.
+The same objects serve the offline replay (:func:`youbot_fdi.app.replay.replay_recording`) and
+the live nodes, so a recording replayed offline gives the same decisions as the nodes gave live.
 """
-from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
-import yaml
 
-from youbot_fdi.config_paths import config_dir
-from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualBatch, ResidualGenerator, ResidualSpread
-from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.model.profile import load_model, load_profile, PlatformModel
 from youbot_fdi.samples import CommandBatch, RepeatedMessages
-from youbot_fdi.settings import load_settings, settings_from_mapping
-from youbot_fdi.structure.generate import wheel_suffix
-from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
-from youbot_fdi.yamlio import load_yaml
-
-DEFAULT_RESIDUAL_MODEL = 'youbot'
-
-
-def configure(settings, params_path=None):
-    """The model and settings to run with: an ``identify`` parameter file overrides the profile
-    and the noise floors of ``settings``."""
-    if not params_path:
-        return load_model(settings.profile), settings
-    profile = load_profile(params_path)
-    if profile.fdi:
-        settings = settings_from_mapping(FdiSettings, {**settings.__dict__, **profile.fdi},
-                                         source=str(params_path))
-    return PlatformModel(profile), settings
-
-
-def build_pipeline(params_path=None, fdi_config=None, keep_frames=False):
-    """The model and pipeline a replay (and a benchmark) uses: ``config/fdi.yaml`` (or
-    ``fdi_config``), overridden by an ``identify`` parameter file."""
-    model, settings = configure(load_settings(FdiSettings, 'fdi', fdi_config), params_path)
-    return model, FdiPipeline(model, settings, keep_frames=keep_frames)
-
-
-def load_residual_data(path=None, wheel_names=None):
-    """The runtime residual set written by ``youbot-fdi structure --write-residuals``: ``path``,
-    or the shipped set (``config/residuals/``) whose faults cover every wheel of ``wheel_names``
-    (the youBot's first)."""
-    if not path:
-        shipped = sorted((config_dir() / 'residuals').glob('*.yaml'),
-                         key=lambda p: p.stem != DEFAULT_RESIDUAL_MODEL)
-        path = shipped[0] if shipped else config_dir() / 'residuals' / f'{DEFAULT_RESIDUAL_MODEL}.yaml'
-        for candidate in shipped if wheel_names else ():
-            faults = set((_read_residual_file(candidate) or {}).get('faults', ()))
-            if all(f'actuator_{wheel_suffix(w)}' in faults for w in wheel_names):
-                path = candidate
-                break
-    data = _read_residual_file(Path(path))
-    if not isinstance(data, dict) or 'residuals' not in data or 'faults' not in data:
-        msg = f'{path}: not a residual set (needs faults and residuals)'
-        raise ConfigError(msg)
-    return data
-
-
-def _read_residual_file(path):
-    try:
-        return load_yaml(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        msg = f'{path}: cannot read the residual set: {err}'
-        raise ConfigError(msg) from err
-
-
-@dataclass(frozen=True)
-class ReplayResult:
-    """What a replay of a recording found."""
-
-    events: list  # FaultEvent, in order
-    counters: dict  # the reader's message counters (used, skipped ...) and the generator's restarts
-    has_commands: bool  # the recording had the command topic
-    damage: object = None  # youbot_fdi.bag.salvage.Damage of a damaged recording, else None
-    spread: object = None  # youbot_fdi.fdi.residuals.ResidualSpread of the residuals
 
 
 class FdiPipeline:
@@ -93,17 +21,16 @@ class FdiPipeline:
     ----------
     model : PlatformModel
     settings : FdiSettings
-    residual_data : dict, optional
-        Default: the shipped residual set of the youBot model.
+    residual_data : dict
+        The runtime residual set of the structural analysis
+        (:func:`youbot_fdi.app.config.load_residual_data` reads it).
     keep_frames : bool
         Keep every residual frame (for reports, :meth:`residuals`).
     """
 
-    def __init__(self, model, settings=FdiSettings(), residual_data=None, keep_frames=False):
+    def __init__(self, model, settings, residual_data, keep_frames=False):
         self.model = model
         self.settings = settings
-        residual_data = residual_data or load_residual_data(settings.residual_file or None,
-                                                            model.wheel_names)
         self.generator = ResidualGenerator(model, settings)
         self.decision = DecisionMaker(model.wheel_names, settings, residual_data)
         self._kept = [] if keep_frames else None
@@ -163,23 +90,3 @@ class FdiPipeline:
             # chunk's samples, which would otherwise clear it at once.
             events += self.decision.data_stalled(self._last_stamp)
         return events
-
-    def replay(self, path, joint_topic=None, command_topic=None, on_event=None, on_progress=None):
-        """Feed a rosbag2 recording through the pipeline, streaming, a chunk at a time.
-
-        ``on_event(event)`` is called as each event is found (a caller can write them as they
-        come); ``on_progress(messages done, total)`` after every chunk. A damaged recording is
-        analysed as far as it can be read (the result's ``damage`` says where it ended).
-        """
-        from youbot_fdi.bag.reader import RecordingReader
-        events = []
-        with RecordingReader(path, self.model.wheel_names, joint_topic or JOINT_STATES,
-                             command_topic or WHEEL_COMMANDS, keep_partial=True) as reader:
-            for chunk in reader.chunks(on_progress=on_progress):
-                for event in self.feed(chunk):
-                    events.append(event)
-                    if on_event is not None:
-                        on_event(event)
-            return ReplayResult(events, {**reader.counters, **self.generator.counters,
-                                         'messages_repeated': self.repeated.count},
-                                reader.has_commands, reader.damage, self.spread)

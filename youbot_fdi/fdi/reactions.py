@@ -13,13 +13,13 @@ import json
 import numpy as np
 
 from youbot_fdi.errors import ConfigError
-from youbot_fdi.faults import CONDITIONS, FaultKind
+from youbot_fdi.faults import CONDITIONS, FaultKind, Level
 from youbot_fdi.model.allocation import Allocation, AllocationError
 from youbot_fdi.model.kinematics import limit_wheel_speeds
 
 MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE = 'motor_off', 'stop', 'degrade', 'substitute', 'none'
 ACTIONS = (MOTOR_OFF, STOP, DEGRADE, SUBSTITUTE, NONE)
-INFO = 'INFO'
+INFO = Level.INFO
 #: Actions that switch the wheel's motor off: a runaway, and a frozen encoder (the module's own
 #: velocity loop runs on the frozen reading and would drive the wheel to its current limit).
 SWITCHES_OFF = (MOTOR_OFF, SUBSTITUTE)
@@ -164,13 +164,13 @@ class Reactor:
         its fault's action (replacing that component's previous one) once it is confirmed: it
         has stood ``confirmation_time`` without an OK (:meth:`confirm`; at once when that is
         0); an OK (cleared, or the decision's reset) ends it, or drops it unconfirmed."""
-        if (not self.settings.react or event.level not in ('ERROR', 'OK')
+        if (not self.settings.react or event.level not in (Level.ERROR, Level.OK)
                 or event.fault in CONDITIONS):  # a base condition, not a fault: nothing to do
             return []
-        if event.level == 'OK' and self._pending.pop(event.wheel, None) is not None \
+        if event.level == Level.OK and self._pending.pop(event.wheel, None) is not None \
                 and event.wheel not in self._active:
             return []  # cleared before it was confirmed: nothing was started
-        if event.level == 'ERROR' and self.settings.confirmation_time > 0.0:
+        if event.level == Level.ERROR and self.settings.confirmation_time > 0.0:
             self._pending[event.wheel] = event
             return self.confirm(event.stamp)
         return self._start(event)
@@ -194,9 +194,9 @@ class Reactor:
         reactions = []
         if previous is not None:
             reactions.append(Reaction(event.stamp, f'end_{previous[1]}', component, previous[0],
-                                      'fault cleared' if event.level == 'OK' else
+                                      'fault cleared' if event.level == Level.OK else
                                       f'replaced by the reaction to {event.fault}'))
-        if event.level == 'ERROR':
+        if event.level == Level.ERROR:
             action = self.settings.action(event.fault)
             if component is None and action in (MOTOR_OFF, DEGRADE, SUBSTITUTE):
                 action = STOP  # a fault of the whole base: nothing to do per wheel

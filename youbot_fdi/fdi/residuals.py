@@ -44,7 +44,7 @@ from youbot_fdi.fdi.observer import ModelObserver, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import last_true_value, run_lengths
 from youbot_fdi.samples import JointBatch, VELOCITY
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.naming import wheel_suffix
 
 FAMILIES = ('torque', 'observer', 'command', 'encoder')
 #: Signals a frame carries besides its residuals: (label prefix, attribute).

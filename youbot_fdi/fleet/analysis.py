@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 
 from youbot_fdi.bag.salvage import STORAGE_SUFFIXES
+from youbot_fdi.faults import Level
 
 UNKNOWN_ROBOT = 'unknown'
 NAME_SEPARATOR = '__'
@@ -68,8 +69,9 @@ def analyse(recording, params_path, output, fault_free_margin):
     in ``OUT/rows/<name>.json`` (what a resumed run skips)."""
     import numpy as np
 
-    from youbot_fdi.fdi.eventlog import EventLog
-    from youbot_fdi.fdi.pipeline import build_pipeline
+    from youbot_fdi.app.eventlog import EventLog
+    from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.replay import replay_recording
     output = Path(output)
     row = {'recording': recording.name, 'robot': recording.robot, 'path': recording.path,
            'start': math.nan, 'duration_s': math.nan, 'samples': 0, 'faults': {},
@@ -78,17 +80,17 @@ def analyse(recording, params_path, output, fault_free_margin):
         model, pipeline = build_pipeline(params_path)
         row['wheels'] = list(model.wheel_names)
         with EventLog(output / 'events' / f'{recording.name}.jsonl') as log:
-            result = pipeline.replay(recording.path, on_event=log.write)
+            result = replay_recording(pipeline, recording.path, on_event=log.write)
         row['samples'] = int(result.counters['joint_states'])
         faults = {}
         for event in result.events:
-            if event.level == 'ERROR':
+            if event.level == Level.ERROR:
                 key = f'{event.fault}@{event.wheel or "base"}'
                 faults[key] = faults.get(key, 0) + 1
         row['faults'] = faults
         if result.damage is not None and result.damage.lost:
             row['status'], row['error'] = 'damaged', result.damage.describe()
-        first_alarm = min((e.stamp for e in result.events if e.level == 'ERROR'), default=math.inf)
+        first_alarm = min((e.stamp for e in result.events if e.level == Level.ERROR), default=math.inf)
         row.update(_identify_friction(recording.path, model, first_alarm - fault_free_margin))
     except Exception as err:  # noqa: BLE001 - one recording's failure is its row, never the run's
         row['status'], row['error'] = 'error', f'{type(err).__name__}: {err}'
@@ -104,8 +106,8 @@ def analyse(recording, params_path, output, fault_free_margin):
 def _identify_friction(path, model, until):
     """Start, duration and the identified viscous friction per wheel [N·m·s/rad] and mass [kg]
     from the samples before ``until`` [s] (NaN when too few or no effort recorded)."""
-    from youbot_fdi.fdi.identify import (fit_dynamics, IdentificationError, MIN_SAMPLES, read_arrays,
-                                         RecordingArrays)
+    from youbot_fdi.app.recordings import read_arrays
+    from youbot_fdi.fdi.identify import fit_dynamics, IdentificationError, MIN_SAMPLES, RecordingArrays
     arrays = read_arrays(path, model)
     found = {'start': float(arrays.time[0]), 'duration_s': float(arrays.time[-1] - arrays.time[0]),
              'friction': [math.nan] * model.dynamics.n_wheels}

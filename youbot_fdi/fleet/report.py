@@ -6,7 +6,7 @@ import html
 import math
 from pathlib import Path
 
-from youbot_fdi.fdi.report import pyplot
+from youbot_fdi.app.report import pyplot
 from youbot_fdi.fleet.trend import SECONDS_PER_DAY
 
 CSV_NAME = 'recordings.csv'

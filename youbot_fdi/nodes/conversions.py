@@ -5,11 +5,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from sensor_msgs.msg import JointState
 
+from youbot_fdi.faults import Level
 from youbot_fdi.fdi.decision import BASE_NAME, FaultEvent
 from youbot_fdi.nodes.common import NAME_PREFIX, seconds_to_stamp, stamp_to_seconds
 
-LEVELS = {'OK': DiagnosticStatus.OK, 'WARN': DiagnosticStatus.WARN,
-          'ERROR': DiagnosticStatus.ERROR, 'STALE': DiagnosticStatus.STALE}
+LEVELS = {Level.OK: DiagnosticStatus.OK, Level.WARN: DiagnosticStatus.WARN,
+          Level.ERROR: DiagnosticStatus.ERROR, 'STALE': DiagnosticStatus.STALE}
 LEVEL_NAMES = {value: name for name, value in LEVELS.items()}
 BASE_COMPONENT = BASE_NAME  # the hardware id and name of faults not tied to a wheel
 
@@ -30,7 +31,7 @@ def fault_status(event, component_prefix='decision'):
     status = DiagnosticStatus()
     status.level = LEVELS[event.level]
     status.name = f'{NAME_PREFIX}/{component_prefix}: {event.wheel or BASE_COMPONENT}'
-    status.message = event.fault if event.level != 'OK' else f'ok ({event.fault} cleared)'
+    status.message = event.fault if event.level != Level.OK else f'ok ({event.fault} cleared)'
     status.hardware_id = event.wheel or BASE_COMPONENT
     status.values = [KeyValue(key='stamp', value=repr(event.stamp)),
                      KeyValue(key='level', value=event.level),
@@ -53,7 +54,7 @@ def event_from_status(status):
     """The :class:`FaultEvent` a /youbot_fdi/faults status carries."""
     values = {kv.key: kv.value for kv in status.values}
     return FaultEvent(stamp=float(values.get('stamp', 'nan')),
-                      level=values.get('level') or LEVEL_NAMES.get(status.level, 'ERROR'),
+                      level=values.get('level') or LEVEL_NAMES.get(status.level, Level.ERROR),
                       wheel=values.get('wheel') or None, fault=values.get('fault', 'unknown'),
                       residuals=tuple(r for r in values.get('residuals', '').split(',') if r),
                       detail=values.get('detail', ''))

@@ -22,8 +22,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
+from youbot_fdi.faults import Level
 from youbot_fdi.fdi.decision import DecisionMaker, OK
-from youbot_fdi.fdi.pipeline import configure, load_residual_data
+from youbot_fdi.app.config import configure, load_residual_data
 from youbot_fdi.fdi.residuals import ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, diagnostics_publisher, LATCHED_QOS,
@@ -118,7 +119,7 @@ class DecisionNode(Node):
         self.faults_pub.publish(fault_array(events, events[-1].stamp))
         for event in events:
             text = f'{event.level} {event.wheel or BASE_COMPONENT}: {event.fault} ({event.detail})'
-            if event.level == 'ERROR':
+            if event.level == Level.ERROR:
                 self.get_logger().error(text)
             else:
                 self.get_logger().info(text)

@@ -28,7 +28,8 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 import rclpy
 
-from youbot_fdi.fdi.eventlog import EventLog
+from youbot_fdi.app.eventlog import EventLog
+from youbot_fdi.faults import Level
 from youbot_fdi.model.kinematics import tracking_rms
 from youbot_fdi.nodes.common import (freeze_startup_heap, keep_discovery_local, LATCHED_QOS,
                                      now_seconds, SENSOR_QOS, shutdown_nodes, stop_node_processes)
@@ -36,7 +37,7 @@ from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
 from youbot_fdi.nodes.conversions import event_from_status, reaction_from_status
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.naming import wheel_suffix
 from youbot_fdi.topics import (CMD_VEL, FAULTS, JOINT_STATES, PREDICTED, REACTIONS, RESIDUALS,
                                WHEEL_COMMANDS)
 
@@ -199,7 +200,7 @@ class DemoDriverNode(Node):
         state = {}
         for event in self.events:
             state[event.wheel] = event
-        return [e for e in state.values() if e.level == 'ERROR']
+        return [e for e in state.values() if e.level == Level.ERROR]
 
     def _record(self, item, seen):
         """Keep a new event or reaction ``item`` in ``seen`` (before the drive: in
@@ -230,7 +231,7 @@ class DemoDriverNode(Node):
             if t is None:
                 continue
             note = ''
-            if event.level == 'ERROR' and self.injected_at is not None:
+            if event.level == Level.ERROR and self.injected_at is not None:
                 note = f'   ({(event.stamp - self.injected_at) * 1000:.0f} ms after the injection)'
             self.say(f'[{t:6.2f} s] *** {event.level} {event.wheel or "base"}: {event.fault}{note}')
 

@@ -24,7 +24,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from youbot_fdi.model.profile import load_model
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.naming import wheel_suffix
 from youbot_fdi.nodes.common import (declare_settings, health_to_diagnostics,
                                      now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
                                      STREAM_QOS)

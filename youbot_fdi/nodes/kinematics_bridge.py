@@ -37,7 +37,7 @@ from youbot_fdi.nodes.common import (declare_settings, LATCHED_QOS, now_seconds,
                                      seconds_to_stamp, spin_nodes, stamp_to_seconds, STREAM_QOS)
 from youbot_fdi.nodes.conversions import event_from_status, joint_state, reaction_array
 from youbot_fdi.samples import SampleMapper
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.naming import wheel_suffix
 from youbot_fdi.topics import CMD_VEL, FAULTS, JOINT_STATES, ODOM, REACTIONS, WHEEL_COMMANDS
 
 NODE_NAME = 'kinematics_bridge'

@@ -22,7 +22,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from youbot_fdi.fdi.observer import Prediction
-from youbot_fdi.fdi.pipeline import configure
+from youbot_fdi.app.config import configure
 from youbot_fdi.fdi.residuals import ResidualEvaluator
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, INPUT_WARN_INTERVAL, InputWarnings,

@@ -35,19 +35,14 @@ import numpy as np
 from youbot_fdi.config_paths import available_profiles
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.model.profile import load_model
+from youbot_fdi.naming import wheel_suffix
 from youbot_fdi.structure.model import (Equation, load_structural_model_file, model_from_mapping,
                                         shipped_structure_files, StructuralModel)
 from youbot_fdi.yamlio import load_yaml
 
-WHEEL_PREFIX = 'wheel_joint_'
 #: Entries of M or F below this fraction of the largest are structural zeros [-].
 STRUCTURAL_ZERO = 1e-12
 TWIST_NAMES = ('vx', 'vy', 'wz')
-
-
-def wheel_suffix(joint_name):
-    """``wheel_joint_fl`` -> ``fl``; other names unchanged."""
-    return joint_name[len(WHEEL_PREFIX):] if joint_name.startswith(WHEEL_PREFIX) else joint_name
 
 
 def _pattern(matrix):

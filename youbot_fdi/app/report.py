@@ -6,8 +6,9 @@ import html
 
 import numpy as np
 
+from youbot_fdi.faults import Level
 from youbot_fdi.fdi.residuals import FAMILIES
-from youbot_fdi.structure.generate import wheel_suffix
+from youbot_fdi.naming import wheel_suffix
 
 
 def pyplot():
@@ -85,7 +86,7 @@ def _figures(directory, model, data, events):
             ax.fill_between(t, -data[family + '_bound'][:, w], data[family + '_bound'][:, w],
                             color='0.85', label='bound')
             for event in events:
-                if event.wheel == names[w] and event.level == 'ERROR':
+                if event.wheel == names[w] and event.level == Level.ERROR:
                     ax.axvline(event.stamp - data['t0'], color='r', lw=1)
             ax.legend(fontsize=7, loc='upper right')
         np.atleast_1d(axes)[-1].set_xlabel('time [s]')
@@ -99,9 +100,9 @@ def _figures(directory, model, data, events):
     rows = list(names) + ['base']
     for event in events:
         row = rows.index(event.wheel) if event.wheel in rows else len(rows) - 1
-        color = 'r' if event.level == 'ERROR' else 'g'
+        color = 'r' if event.level == Level.ERROR else 'g'
         ax.plot(event.stamp - data['t0'], row, 'o', color=color)
-        ax.annotate(event.fault if event.level == 'ERROR' else 'OK', (event.stamp - data['t0'], row),
+        ax.annotate(event.fault if event.level == Level.ERROR else 'OK', (event.stamp - data['t0'], row),
                     textcoords='offset points', xytext=(4, 4), fontsize=8)
     ax.set_yticks(range(len(rows)), rows)
     ax.set_xlim(t[0], t[-1])

@@ -1,0 +1,38 @@
+"""Recordings read into the core's arrays: identification's :class:`~youbot_fdi.fdi.identify.
+RecordingArrays`, and ``identify`` on a recording."""
+import numpy as np
+
+from youbot_fdi.app.config import residual_data_for
+from youbot_fdi.bag.reader import RecordingReader
+from youbot_fdi.fdi.identify import identify, RecordingArrays, require_samples
+from youbot_fdi.samples import JointBatch, RepeatedMessages
+from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS
+
+
+def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMANDS):
+    """Read a recording into :class:`~youbot_fdi.fdi.identify.RecordingArrays` (a damaged one as
+    far as it can be read); speeds, positions and efforts in the model's convention (drive signs
+    applied)."""
+    signs = model.kinematics.drive_signs
+    rows, commands = [], []
+    with RecordingReader(path, model.wheel_names, joint_topic, command_topic) as reader:
+        for sample in reader.samples():
+            if hasattr(sample, 'kind'):
+                commands.append(sample)
+            else:
+                rows.append((sample.stamp, signs * sample.position, signs * sample.velocity,
+                             signs * sample.effort))
+        damage = reader.damage
+    require_samples(len(rows), str(path))
+    rows.sort(key=lambda r: r[0])
+    joints = JointBatch(*(np.array([r[k] for r in rows]) for k in range(4)))
+    joints = joints.select(RepeatedMessages().fresh(joints))  # re-sent messages carry nothing
+    return RecordingArrays(joints.stamp, joints.position, joints.velocity, joints.effort, commands, damage)
+
+
+def identify_recording(path, prior_model, settings, fit_gains=True, learn=True):
+    """:func:`~youbot_fdi.fdi.identify.identify` on the recording at ``path`` (the residual set
+    ``settings`` names, else the shipped one)."""
+    return identify(read_arrays(path, prior_model), prior_model, settings,
+                    residual_data_for(prior_model, settings), fit_gains=fit_gains, learn=learn,
+                    source=str(path))
