@@ -1,4 +1,6 @@
 """The virtual youBot and the driver over a virtual CAN bus: units, signs, TMCL, watchdogs, faults."""
+import time
+
 import can
 import numpy as np
 import pytest
@@ -40,6 +42,28 @@ def test_velocity_mode_units_and_signs(rig):
     np.testing.assert_allclose(sample.position, true_angle, atol=2e-3)
     twist = rig.model.kinematics.forward(rig.model.kinematics.from_driver(sample.velocity))
     assert twist[0] == pytest.approx(0.3, abs=2e-3) and abs(twist[1]) < 1e-3
+
+
+def test_a_starved_simulation_still_answers_with_the_state_of_the_moment(rig):
+    """Real modules sample their encoders on their own clock. Following the wall clock with no
+    CPU for its thread (here: no thread at all), the virtual base still answers each cycle with
+    the state of the moment it is asked (it catches up first): the wheels have turned by their
+    speed times the time that passed, never the same position twice (which the FDI would read as
+    every encoder frozen at once)."""
+    command = forward_command(rig.model, 0.3)
+    before = rig.run(1.0, 'velocity', command)  # at speed, in lockstep
+    rig.base.follow_wall_clock()
+    started = time.monotonic()
+    time.sleep(0.1)
+    rig.driver.cycle()
+    rig.settle()
+    elapsed = time.monotonic() - started
+    rig.driver.close_cycles()
+    after = rig.driver.sample()
+    turned = after.position - before.position
+    assert np.all(np.abs(turned) > 0.5 * np.abs(command) * 0.1)
+    assert np.all(np.abs(turned) <= np.abs(command) * (elapsed + 0.01) + 0.01)
+    assert after.stamp - before.stamp >= 0.1 - rig.base.period
 
 
 def test_effort_mode_is_open_loop_torque(rig):

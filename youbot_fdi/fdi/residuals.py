@@ -362,10 +362,15 @@ class ResidualEvaluator:
                     (self._frozen, self._effort_frozen, self._position_frozen))
         features = {family: np.full((rows, n, len(BOUND_TERMS[family])), np.nan)
                     for family in BOUND_TERMS}
-        return _batch(joints.stamp, nan, np.ones((rows, n)), nan, np.ones((rows, n)), nan,
-                      np.ones((rows, n)), nan, np.ones((rows, n)), self.signs * joints.velocity,
-                      nan, np.ones(rows, dtype=bool), nan, *counters, silent,
-                      np.full(rows, np.nan), nan, np.zeros(rows), np.ones((rows, n)), features)
+        frozen, effort_frozen, position_frozen = counters
+        return ResidualBatch(
+            stamp=joints.stamp, values=dict.fromkeys(FAMILIES, nan),
+            bounds={family: np.ones((rows, n)) for family in FAMILIES},
+            velocity=self.signs * joints.velocity, torque=nan,
+            velocity_mode=np.ones(rows, dtype=bool), command=nan, frozen=frozen,
+            effort_frozen=effort_frozen, position_frozen=position_frozen, silent=silent,
+            load_factor=np.full(rows, np.nan), command_speed=nan,
+            outside_calibration=np.zeros(rows), torque_scale=np.ones((rows, n)), features=features)
 
     def missing(self, sample):
         """:meth:`missing_batch` for one sample (:class:`~youbot_fdi.samples.JointSample`): a
@@ -511,9 +516,14 @@ class ResidualEvaluator:
         s, n, rows = self.settings, self.n, len(joints)
         p, restart = predictions, predictions.restart
         if rows == 0:
-            empty = np.empty((0, n))
-            return _batch(joints.stamp, *(empty,) * 10, p.velocity_mode, empty,
-                          *(empty.astype(int),) * 3, empty, np.empty(0), empty, np.empty(0), empty, {})
+            empty, counts = np.empty((0, n)), np.empty((0, n), dtype=int)
+            return ResidualBatch(
+                stamp=joints.stamp, values=dict.fromkeys(FAMILIES, empty),
+                bounds=dict.fromkeys(FAMILIES, empty), velocity=empty, torque=empty,
+                velocity_mode=p.velocity_mode, command=empty, frozen=counts, effort_frozen=counts,
+                position_frozen=counts, silent=empty, load_factor=np.empty(0),
+                command_speed=empty, outside_calibration=np.empty(0), torque_scale=empty,
+                features={})
         stamp = joints.stamp
         position, velocity, torque = (self.signs * a for a in
                                       (joints.position, joints.velocity, joints.effort))
@@ -563,12 +573,15 @@ class ResidualEvaluator:
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
         torque_u = self.bound('torque', torque_f)
-        batch = _batch(stamp, torque_r, torque_u + torque_a,
-                       velocity - p.from_currents, self.bound('observer', observer_f), command_r,
-                       command_u, encoder_r, self.bound('encoder', encoder_f), velocity, torque,
-                       p.velocity_mode, p.commanded, frozen, effort_frozen, position_frozen,
-                       np.zeros((rows, n)), p.load_factor, p.from_commands, outside, torque_u,
-                       features)
+        batch = ResidualBatch(
+            stamp=stamp,
+            values=dict(zip(FAMILIES, (torque_r, velocity - p.from_currents, command_r, encoder_r))),
+            bounds=dict(zip(FAMILIES, (torque_u + torque_a, self.bound('observer', observer_f),
+                                       command_u, self.bound('encoder', encoder_f)))),
+            velocity=velocity, torque=torque, velocity_mode=p.velocity_mode, command=p.commanded,
+            frozen=frozen, effort_frozen=effort_frozen, position_frozen=position_frozen,
+            silent=np.zeros((rows, n)), load_factor=p.load_factor, command_speed=p.from_commands,
+            outside_calibration=outside, torque_scale=torque_u, features=features)
         return batch.select(~restart) if restart.any() else batch
 
 
@@ -599,17 +612,6 @@ class ResidualSpread:
         """{family: RMS}, NaN for a family without a finite value."""
         return {f: math.sqrt(self._sums[f] / self._counts[f]) if self._counts[f] else math.nan
                 for f in FAMILIES}
-
-
-def _batch(stamp, torque_r, torque_u, observer_r, observer_u, command_r, command_u, encoder_r,
-           encoder_u, velocity, torque, velocity_mode, target, frozen, effort_frozen,
-           position_frozen, silent, load_factor, command_speed, outside_calibration, torque_scale,
-           features):
-    values = dict(zip(FAMILIES, (torque_r, observer_r, command_r, encoder_r)))
-    bounds = dict(zip(FAMILIES, (torque_u, observer_u, command_u, encoder_u)))
-    return ResidualBatch(stamp, values, bounds, velocity, torque, velocity_mode, target, frozen,
-                         effort_frozen, position_frozen, silent, load_factor, command_speed,
-                         outside_calibration, torque_scale, features)
 
 
 class ResidualGenerator:

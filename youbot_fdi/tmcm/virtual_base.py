@@ -157,6 +157,7 @@ class VirtualYoubot:
         self._rng = np.random.default_rng(settings.seed)
         self._lock = threading.RLock()
         self._thread = None
+        self._clock_origin = None  # (wall [s], simulated [s]) once running in real time
         self._running = threading.Event()
         self.modules = [_Module(i, int(round(model.drive.max_current * MILLISECONDS)),
                                 int(model.drive.encoder_ticks_per_revolution),
@@ -376,6 +377,7 @@ class VirtualYoubot:
         module.target = int(target)
 
     def _on_process_data(self, index, command):
+        self._catch_up()
         module = self.modules[index]
         module.process_data_control = True
         module.last_command_time = self.time
@@ -514,19 +516,41 @@ class VirtualYoubot:
                     self.signs * self.simulator.velocity.copy())
 
     # ------------------------------------------------------------------ real time
+    def follow_wall_clock(self):
+        """From now on the simulated time follows the wall clock: every module answer first
+        catches the simulation up to it (:meth:`start` also steps it in a thread of its own)."""
+        with self._lock:
+            self._clock_origin = (time.monotonic(), self.time)
+
     def start(self):
         """Run the simulation in a thread that follows the wall clock."""
         if self._thread is not None:
             return
+        self.follow_wall_clock()
         self._running.set()
         self._thread = threading.Thread(target=self._run, name='virtual_youbot', daemon=True)
         self._thread.start()
 
+    def _lag(self):
+        """How far the simulation is behind the wall clock [s] (0 unless running in real time)."""
+        if self._clock_origin is None:
+            return 0.0
+        wall, simulated = self._clock_origin
+        return (time.monotonic() - wall) - (self.time - simulated)
+
+    def _catch_up(self):
+        """Advance the simulation to the wall clock before a module answers (call with the lock
+        held). Real modules sample their encoders on their own hardware clock: a simulation
+        thread starved of the CPU (the GIL, a busy host) must not hand the driver the same
+        position twice while time goes on, which reads as frozen encoders on every wheel."""
+        steps = int(self._lag() / self.period)
+        for _ in range(steps):
+            self._step()
+
     def _run(self):
         step = self.settings.realtime_step
-        origin_wall, origin_sim = time.monotonic(), self.time
         while self._running.is_set():
-            lag = (time.monotonic() - origin_wall) - (self.time - origin_sim)
+            lag = self._lag()
             if lag >= step:
                 self.advance(step)
             else:
