@@ -166,6 +166,7 @@ def test_identify_finds_the_roller_friction_ratio_of_a_drive(ratio):
     torque = acceleration @ dyn.mass_matrix.T + speeds @ dyn.friction_matrix.T + dyn.coulomb_torque(speeds)
     time = dt * np.arange(len(speeds))
     arrays = RecordingArrays(time, np.cumsum(speeds, axis=0) * dt, speeds, torque, [])
-    params, info, _ = fit_dynamics(arrays, signed)
+    fit = fit_dynamics(arrays, signed)
+    params, info = fit.parameters, fit.info
     assert params.roller_friction_ratio == pytest.approx(ratio)
     assert info['roller_friction_ratio'] == pytest.approx(ratio)

@@ -28,6 +28,7 @@ explained torque, refitted a few times (the sign of friction and inertia, not of
 """
 from dataclasses import dataclass, replace
 import math
+from typing import NamedTuple
 
 import numpy as np
 import scipy.optimize
@@ -106,11 +107,18 @@ def _smooth(values, dt, deriv=0):
     return scipy.signal.savgol_filter(values, window, SAVGOL_ORDER, deriv=deriv, delta=dt, axis=0)
 
 
+class DynamicsFit(NamedTuple):
+    """What :func:`fit_dynamics` found."""
+
+    parameters: object  # DynamicParameters
+    info: dict  # the fit's figures (roller_friction_ratio, conditioning, priors used, ...)
+    fitted: np.ndarray  # (k, n) the torques the fit explains [N·m]
+
+
 def fit_dynamics(arrays, model):
     """Least-squares (m, J_z, J_w, D, F_c), and the contact law's roller friction ratio k on the
     grid :data:`ROLLER_RATIOS` (each k a linear fit; k > 0 kept only where it lowers the torque
-    fit's squared error by :data:`ROLLER_RATIO_MIN_GAIN`); returns (DynamicParameters, fit info
-    dict, fitted torques)."""
+    fit's squared error by :data:`ROLLER_RATIO_MIN_GAIN`); a :class:`DynamicsFit`."""
     if not np.all(np.isfinite(arrays.torque)):
         msg = 'the recording has no effort (measured current) on every sample; it is needed'
         raise IdentificationError(msg)
@@ -133,7 +141,7 @@ def fit_dynamics(arrays, model):
     physics = fits[0]
     best = min(fits, key=lambda fit: fit[0])
     chosen = best if best[0] < (1.0 - ROLLER_RATIO_MIN_GAIN) * physics[0] else physics
-    return chosen[2], {**chosen[3], 'roller_friction_ratio': chosen[1]}, chosen[4]
+    return DynamicsFit(chosen[2], {**chosen[3], 'roller_friction_ratio': chosen[1]}, chosen[4])
 
 
 def _per_wheel_columns(law):
@@ -527,7 +535,8 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     false-alarm rate); ``source`` names the recording in the result.
     (:func:`youbot_fdi.app.recordings.identify_recording` reads a recording and calls this.)"""
     require_samples(len(arrays.time), source)
-    dynamics, info, _ = fit_dynamics(arrays, prior_model)
+    fit = fit_dynamics(arrays, prior_model)
+    dynamics, info = fit.parameters, fit.info
     interval = float(np.median(np.diff(arrays.time)))
     info['sample_period'] = interval
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))

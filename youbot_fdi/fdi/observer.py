@@ -30,6 +30,7 @@ its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerat
 """
 from dataclasses import dataclass, replace
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -144,6 +145,16 @@ class PredictionBatch:
 
     def __len__(self):
         return len(self.stamp)
+
+
+class ExplainedTorque(NamedTuple):
+    """The torques of one interval (:meth:`ModelObserver._explained`), each (n,) or (N, n) [N·m]."""
+
+    explained: np.ndarray  # the torque the dynamics need for the measured speed change
+    friction: np.ndarray  # the friction level: viscous plus the Coulomb level
+    coulomb: np.ndarray  # the Coulomb torque (with the learned correction's friction part)
+    unseen: np.ndarray  # friction the model cannot see (contact-law share, speed extrapolation)
+    outside: np.ndarray  # wheels outside the learned correction's calibration (bit mask)
 
 
 class ModelObserver:
@@ -435,8 +446,9 @@ class ModelObserver:
     # ------------------------------------------------------------------ the model's torque
     # Shapes (n,) for one sample or (N, n) for a block.
     def _explained(self, velocity, prev_velocity, phi, gamma_inv, step, torque, prev_torque):
-        """(explained torque, the wheel's friction level, Coulomb torque, unseen friction, wheels
-        outside the learned correction's calibration (:func:`wheel_mask`, 0 without one)) over one
+        """An :class:`ExplainedTorque` (explained torque, the wheel's friction level, Coulomb torque,
+        unseen friction, wheels outside the learned correction's calibration (:func:`wheel_mask`,
+        0 without one)) over one
         interval of ``step`` [s] (a scalar, or (N, 1)) between measured torques ``prev_torque``
         and ``torque`` (either sign: only their size is used): the torque the exactly discretised dynamics
         need for the measured speed change, with the learned correction (if any): its friction part
@@ -460,7 +472,7 @@ class ModelObserver:
                 outside = wheel_mask(seen)
             coulomb = coulomb + learned_friction
             explained = explained + learned_inertia
-        return explained + coulomb, friction, coulomb, unseen, outside
+        return ExplainedTorque(explained + coulomb, friction, coulomb, unseen, outside)
 
     def _load_votes(self, mean_torque, explained, friction):
         """Per wheel, (load part: measured minus inertial torque, friction level), zero where the

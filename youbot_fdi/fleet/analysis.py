@@ -117,7 +117,7 @@ def _identify_friction(path, model, until):
     clean = RecordingArrays(arrays.time[keep], arrays.position[keep], arrays.velocity[keep],
                             arrays.torque[keep], [c for c in arrays.commands if c.stamp < until])
     try:
-        dynamics, _, _ = fit_dynamics(clean, model)
+        dynamics = fit_dynamics(clean, model).parameters
     except IdentificationError:
         return found
     found.update(friction=list(dynamics.viscous_friction), mass=float(dynamics.mass))
