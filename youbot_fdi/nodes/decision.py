@@ -22,9 +22,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
+from youbot_fdi.app.config import configure, residual_data_for
 from youbot_fdi.faults import Level
-from youbot_fdi.fdi.decision import DecisionMaker, OK
-from youbot_fdi.app.config import configure, load_residual_data
+from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.nodes.common import (declare_settings, diagnostics_publisher, LATCHED_QOS,
@@ -46,8 +46,7 @@ class DecisionNode(Node):
         self.model, self.settings = configure(declare_settings(self, FdiSettings), params_file)
         self.names = self.model.wheel_names
         self.decision = DecisionMaker(self.names, self.settings,
-                                      load_residual_data(self.settings.residual_file or None,
-                                                         self.model.wheel_names))
+                                      residual_data_for(self.model, self.settings))
         self.events = []
         self._last_stamp = None  # of the last residual frame [s]
         self._heard = -math.inf  # the newest /joint_states stamp seen at a stall [s]
@@ -151,8 +150,8 @@ class DecisionNode(Node):
             component = key or BASE_COMPONENT
             status.name = f'{NAME_PREFIX}/{NODE_NAME}: {component}'
             status.hardware_id = component
-            status.message = 'ok' if level == OK else fault
-            status.values = [KeyValue(key='fault', value=fault if level != OK else '')]
+            status.message = 'ok' if level == Level.OK else fault
+            status.values = [KeyValue(key='fault', value=fault if level != Level.OK else '')]
             if self._last_stamp is None:
                 status.level, status.message = DiagnosticStatus.STALE, 'no residuals yet'
             array.status.append(status)
