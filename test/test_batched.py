@@ -341,7 +341,8 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     """Evidence (the magnitude CUSUM, and the torque shift CUSUMs against a level that holds still
     while the wheel's torque alarm is set), the shared-evidence rule and release hysteresis over a
     block, from any state it was left in, equal the one-row recursions; so do the rows in which the
-    base breaks away from rest (no torque evidence, the level starts afresh)."""
+    base breaks away from rest (no torque evidence, the level starts afresh) and those in which
+    the wheels leave the level's operating point (the level starts afresh)."""
     from youbot_fdi.fdi.settings import FdiSettings
     settings_ = FdiSettings(release_time=0.05, shared_window=0.5, shift_time_constant=0.3)
     rng = np.random.default_rng(seed)
@@ -367,7 +368,8 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     excited = rng.random((rows, 4)) < 0.7
     stamps = np.cumsum(rng.uniform(0.002, 0.4, rows))  # some closer than evidence_interval
     breaking = rng.random(rows) < 0.15
-    got = batched._alarms(z, excited, stamps, torque, bound, bound, breaking)  # the bound as scale
+    moved = rng.random(rows) < 0.1
+    got = batched._alarms(z, excited, stamps, torque, bound, bound, breaking, moved)  # bound as scale
     s = settings_
     threshold = s.family_thresholds[0]  # the same for every family by default
     level_share = 0.5 * threshold
@@ -379,15 +381,14 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
         row_weight = 1.0 if np.isnan(last) else min(1.0, (stamps[k] - last) / s.evidence_interval)
         # the torque shift, against the level before this row
         present = np.isfinite(torque[k])
-        judged_now = present & ~breaking[k]
+        # breaking away from rest and leaving the operating point start the level afresh
+        fresh = breaking[k] or moved[k]
+        judged_now = present & ~fresh
         x = np.where(judged_now & (weight >= 0.5), (np.nan_to_num(torque[k]) - level) / bound[k], 0.0)
         gain = 0.0 if np.isnan(last) else 1.0 - np.exp(-(stamps[k] - last) / s.shift_time_constant)
         # the bound's usual size (a geometric average), and the sample's precision against it
         precision = np.minimum(1.0, (np.exp(typical) / bound[k]) ** 2)
-        # a bound four times its usual size is a manoeuvre: the level starts afresh
-        # and so does breaking away from rest
-        if_steady = ((~present | (typical_weight == 0) | (bound[k] <= 4.0 * np.exp(typical)))
-                     & ~breaking[k]) | alarm[0]
+        if_steady = np.full(4, not fresh) | alarm[0]
         weight = np.where(if_steady, weight, 0.0)
         typical_gain = gain * present
         typical_weight = typical_weight + typical_gain * (1.0 - typical_weight)

@@ -30,3 +30,27 @@ def test_an_alarm_after_the_onset_on_the_right_wheel_is_a_detection_not_a_false_
     assert result['detected'] and result['isolated'] and result['named']
     assert result['false_alarms'] == 0 and result['delay'] == pytest.approx(0.05)
     assert result['fault_free_seconds'] == 10.0 and math.isinf(result['closest_events'])
+
+
+def test_a_randomized_fault_is_visible_once_its_wheel_is_driven():
+    """The randomized suite's delays count from when a fault could be seen: a fault on a wheel
+    told to stand (stuck, torque loss, friction, a frozen encoder) from the first command that
+    drives it; on a driven wheel at once; a lost link at once; a runaway from its command's
+    change."""
+    import numpy as np
+    from youbot_fdi.bench.plant import Drive, _visible
+    times = np.array([0.0, 1.0, 2.0, 3.0])
+    commands = np.zeros((4, 4))
+    commands[3, 1] = 2.0  # wheel 1 driven from 3 s; wheel 0 from the start
+    commands[:, 0] = 1.0
+
+    def drive(fault, wheel):
+        return Drive(np.array([0.0]), np.zeros((1, 3)), 4.0, fault=fault, wheel=wheel, fault_time=1.5)
+
+    assert _visible(drive('stuck', 1), times, commands, False) == 3.0
+    assert _visible(drive('encoder_freeze', 1), times, commands, False) == 3.0
+    assert _visible(drive('torque_loss', 0), times, commands, False) == 1.5
+    assert _visible(drive('comm_loss', 1), times, commands, False) == 1.5
+    assert _visible(drive('runaway', 1), times, commands, False) == 3.0
+    assert math.isnan(_visible(drive('runaway', 0), times, commands, False))
+    assert math.isnan(_visible(drive(None, 0), times, commands, False))  # no fault

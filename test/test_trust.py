@@ -21,12 +21,12 @@ def model():
     return load_model('youbot')
 
 
-def frame(model, stamp, torque_score):
+def frame(model, stamp, torque_score, speed=2.0):
     n = len(model.wheel_names)
     values = {f: np.zeros(n) for f in FAMILIES}
     values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
     return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
-                         velocity=np.full(n, 2.0), torque=np.full(n, 0.5), command_mode='velocity',
+                         velocity=np.full(n, speed), torque=np.full(n, 0.5), command_mode='velocity',
                          command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
                          effort_frozen=np.zeros(n, dtype=int), position_frozen=np.zeros(n, dtype=int),
                          silent=np.zeros(n))
@@ -40,6 +40,57 @@ def first_alarm_time(model, rate, score, seconds=1.0):
         if any(e.level == 'ERROR' for e in decision.update(frame(model, 10.0 + k / rate, score))):
             return k / rate
     return math.inf
+
+
+def test_the_operating_point_of_the_torque_levels_changes_beyond_its_range(model):
+    """Closed form, against the mean of the speeds since the operating point started: from 2 rad/s
+    a wheel at 2.4 is the same point (0.4 within a quarter of the fastest mean, 0.5, plus three
+    speed_sigma, 0.03); at 2.7 (0.6 from the mean 2.1) another one, whose mean is the reference
+    after; near standstill a change under stuck_speed is none. Row by row gives the same rows;
+    a quantised reading jumping within three of its noise is no change."""
+    s = FdiSettings()
+    assert (s.shift_operating_range, s.stuck_speed, s.speed_sigma) == (0.25, 0.3, 0.01)
+    speeds = np.full((8, 4), 2.0)
+    speeds[2, 1] = 2.4  # 0.4 < 0.5 + 0.03: the same point
+    speeds[4:, 1] = 2.7  # 0.6 from the mean 2.1 > 0.525 + 0.03: another point
+    speeds[6:, 1] = 3.0  # 0.3 from 2.7: the same as row 4's
+    speeds = np.vstack([speeds, np.zeros((2, 4)), [[0.2, 0.0, 0.0, 0.0]], [[0.5, 0.0, 0.0, 0.0]]])
+    expected = np.zeros(len(speeds), dtype=bool)
+    expected[[4, 8, 11]] = True  # 2.7; to rest; 0.5 - 0.07 > stuck_speed + 0.03 at rest (not 0.2)
+    batched = DecisionMaker(model.wheel_names, s, load_residual_data())
+    np.testing.assert_array_equal(batched.operating_point_changes(speeds), expected)
+    one_by_one = DecisionMaker(model.wheel_names, s, load_residual_data())
+    rows = [bool(one_by_one.operating_point_changes(row[None])[0]) for row in speeds]
+    np.testing.assert_array_equal(rows, expected)
+    # a Robotino's readings: two quantisation steps up now and then (0.6 > 0.45 + 0.03)
+    quantised = np.tile(np.vstack([np.tile([1.4, -1.8, 0.4], (9, 1)), [[2.0, -1.8, 0.4]]]), (10, 1))
+    noisy = DecisionMaker(model.wheel_names[:3], replace(s, speed_sigma=0.11), load_residual_data())
+    assert not noisy.operating_point_changes(quantised).any()
+    assert DecisionMaker(model.wheel_names[:3], s, load_residual_data()).operating_point_changes(
+        quantised).any()  # the same jumps are moves for a reading without noise
+
+
+@pytest.mark.parametrize('speed_after, alarms', [(2.0, True), (4.0, False)])
+def test_a_torque_shift_is_evidence_only_at_the_operating_point_of_its_level(model, speed_after, alarms):
+    """A wheel's torque residual at -0.5 bound for 4 s, then at +0.5 (inside the bound: the
+    magnitude test adds nothing): at the same speeds that is a shift of one bound, an alarm
+    within (shift_threshold / (1 - shift_drift)) intervals; at twice the speed it is another
+    operating point, where the model's bias is another, and the level starts afresh (no alarm)."""
+    s = replace(FdiSettings(), breakaway_time=0.0)
+    decision = DecisionMaker(model.wheel_names, s, load_residual_data())
+    rate = 100.0
+    for k in range(int(4.0 * rate)):
+        assert not decision.update(frame(model, 10.0 + k / rate, -0.5))
+    first = math.inf
+    for k in range(int(4.0 * rate), int(5.0 * rate)):
+        stamp = 10.0 + k / rate
+        if any(e.level == 'ERROR' for e in decision.update(frame(model, stamp, 0.5, speed_after))):
+            first = min(first, stamp - 14.0)
+    if alarms:
+        intervals = math.ceil(s.shift_threshold / (1.0 - s.shift_drift)) - 1
+        assert first == pytest.approx(intervals / rate, abs=1.0 / rate + 1e-9)
+    else:
+        assert first == math.inf
 
 
 @pytest.mark.parametrize('rate', [100.0, 250.0, 500.0])

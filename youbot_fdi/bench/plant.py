@@ -122,7 +122,7 @@ class Recording:
     command_stamp: np.ndarray  # (M,) [s]
     command: np.ndarray  # (M, 4) [rad/s] or [N·m]
     current_mode: bool
-    fault_visible: float = math.nan  # [s] when the fault could first be seen (runaway: its command changed)
+    fault_visible: float = math.nan  # [s] when the fault could first be seen (its wheel driven; runaway: its command changed)
     extra: dict = field(default_factory=dict)
 
 
@@ -358,13 +358,21 @@ VISIBLE_CHANGE = {False: 0.5, True: 0.05}
 
 
 def _visible(drive, command_times, commands, current_mode):
-    """When the fault could first be seen [s]: at once, but a runaway only once its wheel's
-    command has changed (:data:`VISIBLE_CHANGE`) after the fault."""
+    """When the fault could first be seen [s]: a lost link at once; a runaway once its wheel's
+    command has changed (:data:`VISIBLE_CHANGE`) after the fault; any other fault (actuator,
+    friction, a frozen encoder) once its wheel is driven (its command at least
+    :data:`VISIBLE_CHANGE`): a wheel told to stand shows none of them. NaN: never."""
     if drive.fault is None:
         return math.nan
-    if drive.fault != 'runaway':
+    if drive.fault == 'comm_loss':
         return drive.fault_time
     before = command_times <= drive.fault_time
     held = commands[np.flatnonzero(before)[-1], drive.wheel] if before.any() else 0.0
-    changed = (~before) & (np.abs(commands[:, drive.wheel] - held) > VISIBLE_CHANGE[bool(current_mode)])
-    return float(command_times[np.argmax(changed)]) if changed.any() else math.nan
+    threshold = VISIBLE_CHANGE[bool(current_mode)]
+    if drive.fault == 'runaway':
+        shows = (~before) & (np.abs(commands[:, drive.wheel] - held) > threshold)
+    elif abs(held) > threshold:
+        return drive.fault_time
+    else:
+        shows = (~before) & (np.abs(commands[:, drive.wheel]) > threshold)
+    return float(command_times[np.argmax(shows)]) if shows.any() else math.nan

@@ -75,10 +75,10 @@ SHIFT_CEILING = 2.0
 #: A torque level is a reference once this share of its memory holds samples (``shift_time_constant``
 #: x ln 2 after the start or a gap): the first samples' mean is not yet the wheel's normal.
 SHIFT_KNOWN_LEVEL = 0.5
-#: A torque bound this many times its usual size marks a manoeuvre: the operating point changes,
-#: and with it the model's bias, so the level starts afresh (and is a reference again once half
-#: its memory holds samples).
-MANOEUVRE_BOUNDS = 4.0
+#: A speed reading within this many of its noise (``speed_sigma``) of the operating point's mean
+#: is at it (three sigma: a noisy reading leaves it by chance in about one sample of 370).
+OPERATING_NOISE_SIGMAS = 3.0
+OPERATING_BLOCK = 256  # rows searched at once for the next change of operating point
 BASE = None  # the component of faults not tied to one wheel
 BASE_NAME = 'base'  # how the base component is named for people
 STAMP_TOLERANCE = 1e-9  # [s] rounding allowance when a time condition is turned into a row index
@@ -163,6 +163,9 @@ class DecisionMaker:
         self._typical_bound = ExponentialAverage(self.n)  # ... and the log of its usual bound
         self._last_stamp = np.nan  # [s] of the last row judged
         self._rest_stamp = NEVER  # [s] of the last row in which every wheel stood
+        #: the sum [rad/s] (n,) and count of the wheel speeds read since the torque levels'
+        #: operating point started (count 0: none yet)
+        self._operating_point = (np.zeros(self.n), 0)
         self._pass = {}  # the states after each row of the last block judged (see _rewind)
         self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
         self._below = np.zeros(shape)  # excited time below the threshold since the last alarm [s]
@@ -220,6 +223,44 @@ class DecisionMaker:
         rest = last_true_value(resting, stamps, self._rest_stamp)
         self._rest_stamp = float(rest[-1])
         return ~resting & (stamps - rest < self.settings.breakaway_time)
+
+    def operating_point_changes(self, velocity):
+        """Rows (N,) of speeds ``velocity`` (N, n) [rad/s] in which the wheels leave the operating
+        point the torque levels were learned at, which then starts afresh there. The operating
+        point is the mean of the speeds read since it started; a row leaves it when some wheel's
+        speed differs from that mean by more than ``shift_operating_range`` of the fastest wheel's
+        mean speed (or ``stuck_speed``, if more: slower is standing) plus the reading's noise
+        (``OPERATING_NOISE_SIGMAS`` x ``speed_sigma``: a quantised or noisy reading is not a move).
+        The model's bias depends on the operating point (the contact law, the friction split, the
+        speed), so a level learned at one says nothing of the residual at another; a fault
+        changes the residual at the same one. Leaves the reference after the last row."""
+        s = self.settings
+        velocity = np.asarray(velocity, dtype=float)
+        changes = np.zeros(len(velocity), dtype=bool)
+        usable = velocity[np.isfinite(velocity).all(axis=1)]
+        rows = np.flatnonzero(np.isfinite(velocity).all(axis=1))
+        total, count = self._operating_point
+        noise = OPERATING_NOISE_SIGMAS * s.speed_sigma
+        k = 0
+        while k < len(usable):
+            if count == 0:
+                total, count, k = usable[k].copy(), 1, k + 1
+                continue
+            block = usable[k:k + OPERATING_BLOCK]  # (a search costs its block, not the rest)
+            sums = total + np.cumsum(block, axis=0)
+            means = np.concatenate([(total / count)[None],
+                                    sums[:-1] / (count + np.arange(1, len(block)))[:, None]])
+            allowed = (np.maximum(s.shift_operating_range * np.max(np.abs(means), axis=1), s.stuck_speed)
+                       + noise)
+            away = np.flatnonzero(np.max(np.abs(block - means), axis=1) > allowed)
+            if not len(away):
+                total, count, k = sums[-1], count + len(block), k + len(block)
+                continue
+            k += int(away[0])
+            changes[rows[k]] = True
+            total, count, k = usable[k].copy(), 1, k + 1
+        self._operating_point = (total, count)
+        return changes
 
     def sample_weights(self, stamps):
         """The evidence weight of each row at ``stamps`` (N,) [s]: ``min(1, dt / evidence_interval)``
@@ -281,9 +322,9 @@ class DecisionMaker:
         memory (a manoeuvre's transient, judged with a bound a hundred times wider, says little
         about the level). It holds still for the wheels in ``hold`` (n,) (those whose torque alarm
         is set: a fault does not become the new normal) and for missing residuals, and starts
-        afresh at a manoeuvre (a bound ``MANOEUVRE_BOUNDS`` times the usual one: the model's bias
-        changes with the operating point), and at the rows ``fresh`` (N,) in which the base breaks
-        away from rest, which add nothing to it and have no shift. Slow changes of friction or
+        afresh at the rows ``fresh`` (N,): where the base breaks away from rest or the wheels leave
+        the operating point the level was learned at (:meth:`operating_point_changes`: the
+        model's bias changes with it), which add nothing to it and have no shift. Slow changes of friction or
         contact move it along; a fault shifts the residual faster than it follows. The shift
         counts once half the memory holds samples (``SHIFT_KNOWN_LEVEL``).
         """
@@ -293,12 +334,10 @@ class DecisionMaker:
         present = np.isfinite(residual)
         residual = np.where(present, residual, 0.0)
         log_bound = np.log(np.where(present, bound, 1.0))
-        typical_before, typical_weight = self._typical_bound.advance(memory[:, None] * present, log_bound)
+        typical_before, _ = self._typical_bound.advance(memory[:, None] * present, log_bound)
         precision = np.minimum(1.0, np.exp(2.0 * (typical_before - log_bound)))
-        breaking_away = fresh[:, None]  # a manoeuvre that tells nothing of the level
-        usual = log_bound - typical_before <= np.log(MANOEUVRE_BOUNDS)
-        steady = (~present | (typical_weight == 0) | usual) & ~breaking_away
-        judged = present & ~breaking_away
+        steady = ~fresh[:, None]  # rows that tell nothing of the level start it afresh
+        judged = present & steady
         level_before, weight_before = self._level.advance(
             memory[:, None] * precision * (judged & ~hold), np.clip(residual, -bound, bound),
             keep=steady | hold)
@@ -309,13 +348,15 @@ class DecisionMaker:
         self._last_stamp = stamps[-1]
         return shift
 
-    def _alarms(self, z, excited, stamps, torque, torque_bound, torque_scale, breaking_away):
+    def _alarms(self, z, excited, stamps, torque, torque_bound, torque_scale, breaking_away,
+                moved):
         """Alarm states (N, families, n) after each row of scores ``z`` (N, families, n),
         ``excited`` (N, n), stamps (N,) [s] and the torque residuals ``torque`` with their bounds
         ``torque_bound`` and shift scales ``torque_scale`` (N, n) [N·m], continuing the counters;
         leaves the state after the last
         row. In the rows ``breaking_away`` (N,) the torque family adds no evidence (score 0) and
-        its recent levels start afresh (:meth:`torque_shift`).
+        its recent levels start afresh (:meth:`torque_shift`), as they do in the rows ``moved``
+        (N,) (:meth:`operating_point_changes`).
 
         The torque levels hold still for the wheels whose torque alarm is set (after the row
         before), so the block is judged in parts within which no torque alarm changes: when one
@@ -325,12 +366,13 @@ class DecisionMaker:
         if breaking_away.any():
             z = z.copy()
             z[breaking_away, TORQUE] = 0.0
+        fresh = breaking_away | moved
         while start < rows:
             hold = self.alarm[TORQUE].copy()
             part = slice(start, rows)
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
                                          torque_bound[part], torque_scale[part], hold,
-                                         breaking_away[part])
+                                         fresh[part])
             changes = np.flatnonzero((alarm[:-1, TORQUE] != hold).any(axis=1))
             if not len(changes):
                 parts.append(alarm)
@@ -616,7 +658,8 @@ class DecisionMaker:
         scale = frame.bounds['torque'] if frame.torque_scale is None else frame.torque_scale
         alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None],
                              [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None],
-                             scale[None], self._breaking_away(frame.velocity[None], [frame.stamp]))
+                             scale[None], self._breaking_away(frame.velocity[None], [frame.stamp]),
+                             self.operating_point_changes(frame.velocity[None]))
         self.samples += 1
         self._remember(frame.values['torque'][None], z[TORQUE][None], frame.torque[None],
                        frame.velocity[None], np.array([frame.stamp]))
@@ -643,7 +686,8 @@ class DecisionMaker:
         z = batch.scores()
         alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp,
                              batch.values['torque'], batch.bounds['torque'], batch.torque_scale,
-                             self._breaking_away(batch.velocity, batch.stamp))
+                             self._breaking_away(batch.velocity, batch.stamp),
+                             self.operating_point_changes(batch.velocity))
         capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen, batch.silent))
         frozen = self.settings.frozen_samples
         flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
@@ -780,6 +824,7 @@ class DecisionMaker:
         self._typical_bound = ExponentialAverage(self.n)
         self._last_stamp = np.nan
         self._rest_stamp = NEVER
+        self._operating_point = (np.zeros(self.n), 0)
         self._below[:] = 0
         self.alarm[:] = False
         self._rise[:] = NEVER

@@ -94,6 +94,10 @@ class FdiSettings:
     # the torque residual's shift from its recent level (a fault is faster than friction drifts):
     # g_k = max(0, g_{k-1} + min(+-shift/u, cap) - shift_drift), alarm at g >= shift_threshold
     shift_time_constant: float = 3.0  # memory of the recent level [s]
+    #: the level is a reference only at the operating point it was learned at: while no wheel's
+    #: speed moves from the speeds at its start by more than this share of the fastest one's (or
+    #: stuck_speed, if more) [-]
+    shift_operating_range: float = 0.25
     shift_drift: float = 0.5  # half the shift it is made for: one bound [-]
     shift_threshold: float = 6.0  # [-]
     release_time: float = 0.5  # excited time without evidence that clears an alarm [s]
@@ -137,7 +141,7 @@ class FdiSettings:
                      'evidence_interval',
                      'classification_window', 'load_time_constant', 'false_alarm_target',
                      'evidence_drift', 'shared_window', 'second_fault_score', 'shift_time_constant',
-                     'shift_threshold'):
+                     'shift_threshold', 'shift_operating_range'):
             if getattr(self, name) <= 0:
                 problems.append(name)
         if not 0.5 <= self.bound_quantile < 1.0:
