@@ -179,6 +179,39 @@ def sample_by_sample(path, model, settings):
     return frames, events
 
 
+@pytest.fixture(scope='module')
+def randomized_recordings(tmp_path_factory, model):
+    """Two drives of plants from the randomized suite (not the FDI's model; their own rates,
+    jitter, lost samples, sparse commands), each with a fault, at the default profile's
+    parameters: alarms all along, so every decision path is exercised."""
+    from youbot_fdi.bench import plant, randomized
+    root = tmp_path_factory.mktemp('randomized')
+    rng = np.random.default_rng(3)
+    params = randomized.draw_plants(2, rng)
+    drives = [randomized.judged_drive(rng, params.mass[p], 8.0, fault, p, magnitude)[0]
+              for p, (fault, magnitude) in enumerate([('torque_loss', 0.3), ('encoder_freeze', 1.0)])]
+    paths = []
+    for p, recording in enumerate(plant.simulate(params, drives, seed=3)):
+        paths.append(str(root / f'plant{p}'))
+        randomized.write(recording, paths[-1], model.wheel_names)
+    return paths
+
+
+@pytest.mark.parametrize('size', [1, SMALL_CHUNK])
+@pytest.mark.parametrize('plant', [0, 1])
+def test_any_chunking_gives_the_same_events(randomized_recordings, model, plant, size):
+    """Batch-size independence: a recording fed a message at a time, or in chunks that align
+    with nothing, gives the events of feeding it whole (every stage keeps its state between
+    batches; a batch of one is the live path's)."""
+    def events(chunk):
+        _, pipeline = build_pipeline()
+        with RecordingReader(randomized_recordings[plant], model.wheel_names, keep_partial=True) as reader:
+            return [e.to_dict() for part in reader.chunks(size=chunk) for e in pipeline.feed(part)]
+    whole = events(10 ** 9)
+    assert any(e['level'] == 'ERROR' for e in whole)
+    assert events(size) == whole
+
+
 @pytest.mark.parametrize('name, input_delay', [('stuck', 0.0), ('friction', 0.0), ('runaway', 0.0),
                                                ('runaway', 0.03), ('freeze', 0.0), ('silent', 0.0),
                                                ('effort', 0.02), ('relapse', 0.0)])

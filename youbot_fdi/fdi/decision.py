@@ -53,7 +53,7 @@ from youbot_fdi.faults import FaultKind, Level, LOAD_CHANGE, UNSEEN_OPERATING_PO
 from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
 from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum, last_true_value
-from youbot_fdi.fdi.residuals import FAMILIES
+from youbot_fdi.fdi.residuals import FAMILIES, ResidualBatch
 from youbot_fdi.naming import wheel_suffix
 
 OK, WARN, ERROR = Level.OK, Level.WARN, Level.ERROR  # short names for this module
@@ -236,11 +236,22 @@ class DecisionMaker:
         changes the residual at the same one. Leaves the reference after the last row."""
         s = self.settings
         velocity = np.asarray(velocity, dtype=float)
+        total, count = self._operating_point
+        noise = OPERATING_NOISE_SIGMAS * s.speed_sigma
+        if len(velocity) == 1 and count > 0:  # one row (the live path): the same, in plain steps
+            row = velocity[0]
+            mean = total / count
+            allowed = max(s.shift_operating_range * float(np.max(np.abs(mean))), s.stuck_speed) + noise
+            if not np.isfinite(row).all():
+                return np.zeros(1, dtype=bool)
+            if float(np.max(np.abs(row - mean))) > allowed:
+                self._operating_point = (row.copy(), 1)
+                return np.ones(1, dtype=bool)
+            self._operating_point = (total + row, count + 1)
+            return np.zeros(1, dtype=bool)
         changes = np.zeros(len(velocity), dtype=bool)
         usable = velocity[np.isfinite(velocity).all(axis=1)]
         rows = np.flatnonzero(np.isfinite(velocity).all(axis=1))
-        total, count = self._operating_point
-        noise = OPERATING_NOISE_SIGMAS * s.speed_sigma
         k = 0
         while k < len(usable):
             if count == 0:
@@ -644,37 +655,18 @@ class DecisionMaker:
         return FaultEvent(stamp, level, key, fault, tuple(residuals), detail)
 
     def update(self, frame):
-        """Process one residual frame; returns the fault events it causes (usually none)."""
-        return self.lifecycle.feed(self._update(frame), [frame.stamp])
+        """Process one residual frame; returns the fault events it causes (usually none): a
+        batch of one (:meth:`update_batch`)."""
+        return self.update_batch(ResidualBatch.of_frames([frame]))
 
     def update_batch(self, batch):
-        """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events (those
-        :meth:`update` would give frame by frame)."""
+        """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events (the
+        same whatever the batches it is cut into)."""
         return self.lifecycle.feed(self._update_batch(batch), batch.stamp)
 
-    def _update(self, frame):
-        """The raw events of one residual frame (before the lifecycle)."""
-        z = frame.scores()
-        scale = frame.bounds['torque'] if frame.torque_scale is None else frame.torque_scale
-        alarm = self._alarms(z[None], self._excited(frame.velocity, frame.torque)[None],
-                             [frame.stamp], frame.values['torque'][None], frame.bounds['torque'][None],
-                             scale[None], self._breaking_away(frame.velocity[None], [frame.stamp]),
-                             self.operating_point_changes(frame.velocity[None]))
-        self.samples += 1
-        self._remember(frame.values['torque'][None], z[TORQUE][None], frame.torque[None],
-                       frame.velocity[None], np.array([frame.stamp]))
-        self._row = self._recent_first + len(self._recent[0]) - 1
-        events = (self._load_events([frame.stamp], [frame.load_factor])
-                  + self._range_events([frame.stamp], [frame.outside_calibration]))
-        if self._all_ok() and not self._can_diagnose(alarm, frame.position_frozen[None],
-                                                     frame.silent[None])[0]:
-            return events
-        return events + self._step(frame, z)
-
     def _update_batch(self, batch):
-        """The raw events of a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`.
-
-        The same as :meth:`_update` frame by frame. The alarms are computed for the whole batch.
+        """The raw events of a :class:`~youbot_fdi.fdi.residuals.ResidualBatch` (before the
+        lifecycle). The alarms are computed for the whole batch.
         Frames are examined one by one only where something can change: not while every component
         is OK and no alarm can give a diagnosis, and not while a row repeats the alarms and frozen
         flags of a row that changed nothing (unless the diagnosis depended on the scores, or a
@@ -690,12 +682,15 @@ class DecisionMaker:
                              self.operating_point_changes(batch.velocity))
         capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen, batch.silent))
         frozen = self.settings.frozen_samples
-        flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
-                                batch.effort_frozen >= frozen, batch.position_frozen >= frozen,
-                                self._silent(batch.silent)], axis=1)
         load_events = (self._load_events(batch.stamp, batch.load_factor)
                        + self._range_events(batch.stamp, batch.outside_calibration))
-        changed = np.flatnonzero(np.concatenate([[True], (flags[1:] != flags[:-1]).any(axis=1)]))
+        if rows == 1:  # one row (the live path): it is the change
+            changed = np.zeros(1, dtype=int)
+        else:
+            flags = np.concatenate([alarm.reshape(rows, -1), batch.frozen >= frozen,
+                                    batch.effort_frozen >= frozen, batch.position_frozen >= frozen,
+                                    self._silent(batch.silent)], axis=1)
+            changed = np.flatnonzero(np.concatenate([[True], (flags[1:] != flags[:-1]).any(axis=1)]))
         self.samples += rows
         self._remember(batch.values['torque'], z[:, TORQUE], batch.torque, batch.velocity, batch.stamp)
         first = self._recent_first + len(self._recent[0]) - rows

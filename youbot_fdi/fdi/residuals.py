@@ -265,6 +265,30 @@ class ResidualBatch:
                       np.stack([self.bounds[f] for f in FAMILIES], axis=1))
 
     @classmethod
+    def of_frames(cls, frames):
+        """The :class:`ResidualFrame` s ``frames`` as one batch (a frame without a
+        ``torque_scale`` has its torque bound as one; no command-path speed: NaN)."""
+        frames = list(frames)
+        if len(frames) == 1:  # one frame (the live path): views, no copies
+            def rows(read):
+                return np.asarray(read(frames[0]))[None]
+        else:
+            def rows(read):
+                return np.array([read(f) for f in frames])
+        n = len(frames[0].velocity)
+        return cls(stamp=rows(lambda f: f.stamp),
+                   values={family: rows(lambda f: f.values[family]) for family in FAMILIES},
+                   bounds={family: rows(lambda f: f.bounds[family]) for family in FAMILIES},
+                   velocity=rows(lambda f: f.velocity), torque=rows(lambda f: f.torque),
+                   velocity_mode=rows(lambda f: f.command_mode == VELOCITY),
+                   command=rows(lambda f: f.command), frozen=rows(lambda f: f.frozen),
+                   effort_frozen=rows(lambda f: f.effort_frozen),
+                   position_frozen=rows(lambda f: f.position_frozen), silent=rows(lambda f: f.silent),
+                   load_factor=rows(lambda f: f.load_factor), command_speed=np.full((len(frames), n), np.nan),
+                   outside_calibration=rows(lambda f: f.outside_calibration),
+                   torque_scale=rows(lambda f: f.bounds['torque'] if f.torque_scale is None else f.torque_scale))
+
+    @classmethod
     def concatenate(cls, batches):
         """One batch of several, in order."""
         batches = list(batches)
