@@ -277,8 +277,8 @@ class ResidualBatch:
                 return np.array([read(f) for f in frames])
         n = len(frames[0].velocity)
         return cls(stamp=rows(lambda f: f.stamp),
-                   values={family: rows(lambda f: f.values[family]) for family in FAMILIES},
-                   bounds={family: rows(lambda f: f.bounds[family]) for family in FAMILIES},
+                   values={family: rows(lambda f, k=family: f.values[k]) for family in FAMILIES},
+                   bounds={family: rows(lambda f, k=family: f.bounds[k]) for family in FAMILIES},
                    velocity=rows(lambda f: f.velocity), torque=rows(lambda f: f.torque),
                    velocity_mode=rows(lambda f: f.command_mode == VELOCITY),
                    command=rows(lambda f: f.command), frozen=rows(lambda f: f.frozen),
