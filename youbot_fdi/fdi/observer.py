@@ -146,6 +146,15 @@ class PredictionBatch:
     def __len__(self):
         return len(self.stamp)
 
+    @classmethod
+    def of_prediction(cls, prediction):
+        """One :class:`Prediction` as a batch of one row (views; not a restart)."""
+        p = prediction
+        wheels = {field: np.asarray(getattr(p, field))[None] for field in WHEEL_FIELDS}
+        return cls(stamp=np.array([p.stamp]), since=np.array([p.since]), restart=np.zeros(1, dtype=bool),
+                   velocity_mode=np.array([bool(p.velocity_mode)]), load_factor=np.array([p.load_factor]),
+                   outside_calibration=np.array([float(p.outside_calibration)]), **wheels)
+
 
 class ExplainedTorque(NamedTuple):
     """The torques of one interval (:meth:`ModelObserver._explained`), each (n,) or (N, n) [N·m]."""

@@ -30,8 +30,9 @@ Each residual comes with its bound u (see :mod:`youbot_fdi.fdi.settings`).
 
 :class:`ResidualEvaluator` turns a sample and its prediction into residuals (the
 ``residual_generator`` node); :class:`ResidualGenerator` runs the observer and the evaluator
-together (the replay, the fused ``observer`` node). Each has ``update_batch`` for a block of samples
-at once (the replay) and ``update``, the same computation for one sample (the live nodes).
+together (the replay, the fused ``observer`` node). The evaluator has one implementation,
+``update_batch`` for a block of samples (the replay); its ``update`` (the live nodes) is a batch of
+one. The observer steps one sample where a block takes a prefix scan (fdi/observer.py).
 """
 from dataclasses import dataclass
 import math
@@ -40,7 +41,7 @@ import numpy as np
 
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.learned import wheel_mask
-from youbot_fdi.fdi.observer import ModelObserver, signed_torque
+from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import last_true_value, run_lengths
 from youbot_fdi.samples import JointBatch, VELOCITY
@@ -484,53 +485,14 @@ class ResidualEvaluator:
     def update(self, sample, prediction):
         """The :class:`ResidualFrame` of one sample (:class:`~youbot_fdi.samples.JointSample`)
         and its :class:`~youbot_fdi.fdi.observer.Prediction`, or None (restarted: the prediction
-        does not start at the last sample taken)."""
+        does not start at the last sample taken): :meth:`update_batch` of a batch of one."""
         if self._last is None or self._last[0] != prediction.since:
             self.counters['unpaired'] += self._last is not None  # not at the very start
             self.restart(sample)
             return None
-        s, stamp, p = self.settings, sample.stamp, prediction
-        position, velocity, torque = (self.signs * a for a in (sample.position, sample.velocity,
-                                                               sample.effort))
-        last_stamp, last_position, last_velocity, last_torque = self._last
-        dt = stamp - last_stamp
-        torque = signed_torque(torque, p.explained, self.signed_effort)
-        torque_r, torque_f, torque_a = self._torque_terms(
-            torque, last_torque, velocity, last_velocity, p.explained, p.friction, p.unseen_friction,
-            p.load_factor, dt)
-        torque_u = self.bound('torque', torque_f)
-        command_r, command_u, velocity_f, effort_f = self._command_terms(
-            velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.velocity_mode, stamp - self._started < s.startup_time, p.load_factor * p.unseen_friction,
-            dt)
-        mean_speed = 0.5 * (velocity + last_velocity)
-        encoder_r, encoder_f = self._encoder_terms(position, last_position, mean_speed,
-                                                   velocity - last_velocity, dt)
-        observer_f = self._observer_features(p.from_currents)
-        beyond = self.beyond_calibration({'torque': torque_f, 'observer': observer_f,
-                                          'encoder': encoder_f,
-                                          **({'command': velocity_f} if p.velocity_mode
-                                             else {'effort': effort_f})})
-        outside = float(int(p.outside_calibration) | int(wheel_mask(~beyond)))
-
-        unchanged = (position == last_position) & (velocity == last_velocity)
-        self._frozen = np.where(unchanged, self._frozen + 1, 0)
-        self._effort_frozen = np.where(unchanged & (torque == last_torque), self._effort_frozen + 1, 0)
-        stopped = (position == last_position) & self._moving(mean_speed, p.commanded, p.velocity_mode, dt)
-        self._position_frozen = np.where(stopped, self._position_frozen + 1, 0)
-        self._last = (stamp, position, velocity, torque)
-        self._fresh = np.full(self.n, stamp)
-        return ResidualFrame(
-            stamp=stamp,
-            values={'torque': torque_r, 'observer': velocity - p.from_currents, 'command': command_r,
-                    'encoder': encoder_r},
-            bounds={'torque': torque_u + torque_a,
-                    'observer': self.bound('observer', observer_f),
-                    'command': command_u, 'encoder': self.bound('encoder', encoder_f)},
-            velocity=velocity, torque=torque, command_mode=VELOCITY if p.velocity_mode else 'effort',
-            command=p.commanded, frozen=self._frozen, effort_frozen=self._effort_frozen,
-            position_frozen=self._position_frozen, silent=np.zeros(self.n), load_factor=p.load_factor,
-            outside_calibration=outside, torque_scale=torque_u)
+        joints = JointBatch(np.array([sample.stamp]), np.asarray(sample.position)[None],
+                            np.asarray(sample.velocity)[None], np.asarray(sample.effort)[None])
+        return self.update_batch(joints, PredictionBatch.of_prediction(prediction)).frame(0)
 
     def update_batch(self, joints, predictions):
         """Residuals of a block of samples (:class:`~youbot_fdi.samples.JointBatch`) and their
@@ -590,10 +552,14 @@ class ResidualEvaluator:
         self._fresh = np.full(n, stamp[-1])
         features = {'torque': torque_f, 'observer': observer_f, 'command': velocity_f,
                     'effort': effort_f, 'encoder': encoder_f}
-        common = self.beyond_calibration({f: features[f] for f in ('torque', 'observer', 'encoder')})
-        beyond = common | np.where(p.velocity_mode[:, None],
-                                   self.beyond_calibration({'command': velocity_f}),
-                                   self.beyond_calibration({'effort': effort_f}))
+        judged = {f: features[f] for f in ('torque', 'observer', 'encoder')}
+        if p.velocity_mode.all() or not p.velocity_mode.any():  # one mode (always live): one call
+            beyond = self.beyond_calibration(
+                {**judged, **({'command': velocity_f} if p.velocity_mode[0] else {'effort': effort_f})})
+        else:
+            beyond = self.beyond_calibration(judged) | np.where(
+                p.velocity_mode[:, None], self.beyond_calibration({'command': velocity_f}),
+                self.beyond_calibration({'effort': effort_f}))
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
         torque_u = self.bound('torque', torque_f)
