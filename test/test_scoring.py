@@ -54,3 +54,25 @@ def test_a_randomized_fault_is_visible_once_its_wheel_is_driven():
     assert _visible(drive('runaway', 1), times, commands, False) == 3.0
     assert math.isnan(_visible(drive('runaway', 0), times, commands, False))
     assert math.isnan(_visible(drive(None, 0), times, commands, False))  # no fault
+
+
+def test_a_randomized_fault_that_never_showed_is_no_detection_case():
+    """The randomized summary leaves out faults whose wheel was never driven after them (onset
+    NaN): their runs still count as fault-free driving, their delay does not spoil the median."""
+    import numpy as np
+    from youbot_fdi.bench import randomized
+    from youbot_fdi.bench.plant import PlantParameters
+    start = randomized.START_STAMP
+    runs = [randomized.Run(0, 'fault', 'stuck', 'a', 20.0, 'stuck', 'w0', start + 9.0, start, start + 9.0),
+            randomized.Run(0, 'fault', 'stuck', 'b', 20.0, 'stuck', 'w0', math.nan, start, start + 9.0)]
+    alarm = FaultEvent(start + 9.05, 'ERROR', 'w0', 'stuck')
+    scored = []
+    for run in runs:
+        case = Case(run.label, run.path, run.duration, run.fault, run.wheel, run.onset, None, run.start,
+                    run.injected)
+        scored.append((run, {**score(case, [alarm]), 'fault': run.label}))
+    fields = {name: np.zeros(1) for name in PlantParameters.__dataclass_fields__}
+    text = randomized.summarise(PlantParameters(**fields), scored)
+    assert '1 fault runs left out of detection' in text
+    assert 'median 50 ms' in text and 'nan' not in text
+    assert 'driven fault-free: 0.0 h' in text  # 2 x 9 s before the injection

@@ -275,8 +275,14 @@ def summarise(params, scored):
     if alarmed:
         lines.append('  ' + describe_alarms(params, alarmed))
     lines.append('')
-    lines.append(suite_table('Randomized suite, per fault and magnitude', results))
-    default = [r for r in results if r['fault'] in DEFAULT_MAGNITUDE]
+    # A fault whose wheel is never driven after it cannot be seen: not a detection case.
+    unseen = {id(r) for run, r in scored if run.kind == 'fault' and math.isnan(run.onset)}
+    visible = [r for r in results if id(r) not in unseen]
+    lines.append(suite_table('Randomized suite, per fault and magnitude', visible))
+    if unseen:
+        lines.append(f'  ({len(unseen)} fault runs left out of detection: their wheel was not driven '
+                     'after the fault, so it never showed)')
+    default = [r for r in visible if r['fault'] in DEFAULT_MAGNITUDE]
     delays = np.array([r['delay'] for r in default if r['detected'] and r['isolated']])
     lines.append(f'  default magnitude: {sum(r["detected"] and r["isolated"] for r in default)}/'
                  f'{len(default)} detected and isolated; median '
