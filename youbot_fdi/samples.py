@@ -64,6 +64,12 @@ class JointBatch:
         """No samples of ``n`` wheels."""
         return cls(np.empty(0), *(np.empty((0, n)) for _ in range(3)))
 
+    @classmethod
+    def of_sample(cls, sample):
+        """One :class:`JointSample` as a batch of one row (views)."""
+        return cls(np.array([sample.stamp]), *(np.asarray(a)[None] for a in
+                                               (sample.position, sample.velocity, sample.effort)))
+
     def select(self, rows):
         """The rows picked by ``rows`` (a boolean mask or indices) as a batch."""
         return JointBatch(self.stamp[rows], self.position[rows], self.velocity[rows], self.effort[rows])
@@ -115,8 +121,7 @@ class RepeatedMessages:
 
     def fresh_sample(self, sample):
         """Whether one :class:`JointSample` carries fresh data (the rule of :meth:`fresh`)."""
-        return bool(self.fresh(JointBatch(np.array([sample.stamp]), sample.position[None],
-                                          sample.velocity[None], sample.effort[None]))[0])
+        return bool(self.fresh(JointBatch.of_sample(sample))[0])
 
 
 @dataclass(frozen=True)

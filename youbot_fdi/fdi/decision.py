@@ -234,24 +234,21 @@ class DecisionMaker:
         The model's bias depends on the operating point (the contact law, the friction split, the
         speed), so a level learned at one says nothing of the residual at another; a fault
         changes the residual at the same one. Leaves the reference after the last row."""
-        s = self.settings
         velocity = np.asarray(velocity, dtype=float)
         total, count = self._operating_point
-        noise = OPERATING_NOISE_SIGMAS * s.speed_sigma
         if len(velocity) == 1 and count > 0:  # one row (the live path): the same, in plain steps
             row = velocity[0]
-            mean = total / count
-            allowed = max(s.shift_operating_range * float(np.max(np.abs(mean))), s.stuck_speed) + noise
             if not np.isfinite(row).all():
                 return np.zeros(1, dtype=bool)
-            if float(np.max(np.abs(row - mean))) > allowed:
+            mean = total / count
+            if float(np.max(np.abs(row - mean))) > self._operating_allowance(mean):
                 self._operating_point = (row.copy(), 1)
                 return np.ones(1, dtype=bool)
             self._operating_point = (total + row, count + 1)
             return np.zeros(1, dtype=bool)
         changes = np.zeros(len(velocity), dtype=bool)
-        usable = velocity[np.isfinite(velocity).all(axis=1)]
-        rows = np.flatnonzero(np.isfinite(velocity).all(axis=1))
+        rows = np.flatnonzero(np.isfinite(velocity).all(axis=1))  # a wheel without a reading: skipped
+        usable = velocity[rows]
         k = 0
         while k < len(usable):
             if count == 0:
@@ -261,9 +258,7 @@ class DecisionMaker:
             sums = total + np.cumsum(block, axis=0)
             means = np.concatenate([(total / count)[None],
                                     sums[:-1] / (count + np.arange(1, len(block)))[:, None]])
-            allowed = (np.maximum(s.shift_operating_range * np.max(np.abs(means), axis=1), s.stuck_speed)
-                       + noise)
-            away = np.flatnonzero(np.max(np.abs(block - means), axis=1) > allowed)
+            away = np.flatnonzero(np.max(np.abs(block - means), axis=1) > self._operating_allowance(means))
             if not len(away):
                 total, count, k = sums[-1], count + len(block), k + len(block)
                 continue
@@ -272,6 +267,13 @@ class DecisionMaker:
             total, count, k = usable[k].copy(), 1, k + 1
         self._operating_point = (total, count)
         return changes
+
+    def _operating_allowance(self, means):
+        """How far [rad/s] a speed may be from the operating point's mean speeds ``means`` (..., n)
+        and still be at it (see :meth:`operating_point_changes`), (...)."""
+        s = self.settings
+        return (np.maximum(s.shift_operating_range * np.max(np.abs(means), axis=-1), s.stuck_speed)
+                + OPERATING_NOISE_SIGMAS * s.speed_sigma)
 
     def sample_weights(self, stamps):
         """The evidence weight of each row at ``stamps`` (N,) [s]: ``min(1, dt / evidence_interval)``

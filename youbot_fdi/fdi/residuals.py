@@ -400,8 +400,7 @@ class ResidualEvaluator:
     def missing(self, sample):
         """:meth:`missing_batch` for one sample (:class:`~youbot_fdi.samples.JointSample`): a
         :class:`ResidualFrame`."""
-        return self.missing_batch(JointBatch(np.array([sample.stamp]), sample.position[None],
-                                             sample.velocity[None], sample.effort[None])).frame(0)
+        return self.missing_batch(JointBatch.of_sample(sample)).frame(0)
 
     # ------------------------------------------------------------------ the residual formulas
     # Shapes (n,) for one sample or (N, n) for a block; ``step`` is dt [s] (a scalar, or (N, 1)).
@@ -490,9 +489,8 @@ class ResidualEvaluator:
             self.counters['unpaired'] += self._last is not None  # not at the very start
             self.restart(sample)
             return None
-        joints = JointBatch(np.array([sample.stamp]), np.asarray(sample.position)[None],
-                            np.asarray(sample.velocity)[None], np.asarray(sample.effort)[None])
-        return self.update_batch(joints, PredictionBatch.of_prediction(prediction)).frame(0)
+        return self.update_batch(JointBatch.of_sample(sample),
+                                 PredictionBatch.of_prediction(prediction)).frame(0)
 
     def update_batch(self, joints, predictions):
         """Residuals of a block of samples (:class:`~youbot_fdi.samples.JointBatch`) and their
