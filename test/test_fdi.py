@@ -359,7 +359,7 @@ def test_a_wheel_that_reads_frozen_while_its_current_changes_is_an_encoder_freez
                               bounds={f: np.ones(4) * (settings.torque_sigma if f == 'torque' else 1.0)
                                       for f in FAMILIES},
                               velocity=np.zeros(4), torque=np.array([0.5, 0.1, 0.1, 0.1]),
-                              command_mode='effort', command=np.array([0.5, 0.1, 0.1, 0.1]),
+                              velocity_mode=False, command=np.array([0.5, 0.1, 0.1, 0.1]),
                               frozen=frozen, effort_frozen=np.zeros(4, dtype=int),
                               position_frozen=np.zeros(4, dtype=int), silent=np.zeros(4))
         events += decision.update(frame)

@@ -139,7 +139,7 @@ def _frame(model, stamp, torque_score, position_frozen=0, speed=2.0):
     values = {f: np.zeros(n) for f in FAMILIES}
     values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
     return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
-                         velocity=np.full(n, speed), torque=np.full(n, 0.5), command_mode='velocity',
+                         velocity=np.full(n, speed), torque=np.full(n, 0.5), velocity_mode=True,
                          command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
                          effort_frozen=np.zeros(n, dtype=int),
                          position_frozen=np.array([position_frozen, 0, 0, 0]), silent=np.zeros(n))
@@ -497,7 +497,7 @@ def _batch_of(frame):
     """A one-row ResidualBatch of a ResidualFrame."""
     from youbot_fdi.fdi.residuals import ResidualBatch, ROW_ARRAYS
     rows = {name: np.asarray([getattr(frame, name) if name != 'velocity_mode'
-                              else frame.command_mode == 'velocity'])
+                              else frame.velocity_mode])
             for name in ROW_ARRAYS if name not in ('command_speed', 'torque_scale')}
     rows['torque_scale'] = (frame.bounds['torque'] if frame.torque_scale is None
                             else frame.torque_scale)[None]

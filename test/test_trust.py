@@ -26,7 +26,7 @@ def frame(model, stamp, torque_score, speed=2.0):
     values = {f: np.zeros(n) for f in FAMILIES}
     values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
     return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
-                         velocity=np.full(n, speed), torque=np.full(n, 0.5), command_mode='velocity',
+                         velocity=np.full(n, speed), torque=np.full(n, 0.5), velocity_mode=True,
                          command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
                          effort_frozen=np.zeros(n, dtype=int), position_frozen=np.zeros(n, dtype=int),
                          silent=np.zeros(n))

@@ -562,7 +562,7 @@ class DecisionMaker:
         if frame.frozen[wheel] >= frozen and frame.effort_frozen[wheel] < frozen:
             return FaultKind.ENCODER_FREEZE
         speed, torque = frame.velocity[wheel], frame.torque[wheel]
-        commanded = frame.command[wheel] if frame.command_mode == 'velocity' else np.inf
+        commanded = frame.command[wheel] if frame.velocity_mode else np.inf
         if abs(speed) < self.settings.stuck_speed and (abs(commanded) > self.settings.stuck_speed
                                                        or abs(torque) > self.settings.torque_sigma * 10):
             return FaultKind.STUCK
@@ -638,7 +638,7 @@ class DecisionMaker:
                 # One that is faster or turns the other way runs away.
                 speed = frame.velocity[w]
                 predicted = speed - frame.values['command'][w]
-                lagging = (frame.command_mode == 'velocity' and abs(speed) < abs(predicted)
+                lagging = (frame.velocity_mode and abs(speed) < abs(predicted)
                            and speed * predicted >= 0.0
                            and not self._torque_within_bounds(w, self.components[self.wheel_names[w]]))
                 kind = None if lagging else FaultKind.RUNAWAY

@@ -44,7 +44,7 @@ from youbot_fdi.fdi.learned import wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import last_true_value, run_lengths
-from youbot_fdi.samples import JointBatch, VELOCITY
+from youbot_fdi.samples import JointBatch
 from youbot_fdi.naming import wheel_suffix
 
 FAMILIES = ('torque', 'observer', 'command', 'encoder')
@@ -122,7 +122,7 @@ class ResidualFrame:
     bounds: dict  # family -> bound (n,)
     velocity: np.ndarray  # measured, kinematic convention [rad/s]
     torque: np.ndarray  # measured, kinematic convention [N·m] (NaN if not recorded)
-    command_mode: str  # 'velocity' or 'effort'
+    velocity_mode: bool  # the command in force is a speed (True) or a torque (False)
     command: np.ndarray  # in force (after the watchdog), kinematic convention
     frozen: np.ndarray  # consecutive samples with position and speed unchanged (n,) int
     effort_frozen: np.ndarray  # consecutive samples with the effort unchanged too (n,) int
@@ -166,7 +166,7 @@ class ResidualFrame:
             labels += [f'{prefix}_{s}' for s in suffixes]
             signals.append(np.asarray(getattr(self, array), dtype=float))
         labels += list(SCALAR_SIGNALS)
-        signals.append(np.array([1.0 if self.command_mode == 'velocity' else 0.0, self.load_factor,
+        signals.append(np.array([float(self.velocity_mode), self.load_factor,
                                  self.outside_calibration]))
         extra = np.concatenate(signals)
         return (labels, np.concatenate([values, extra]),
@@ -195,7 +195,7 @@ class ResidualFrame:
                    values={f: pick(f, values) for f in FAMILIES},
                    bounds={f: pick(f, bounds) for f in FAMILIES},
                    velocity=signals['velocity'], torque=signals['torque'],
-                   command_mode='velocity' if values[index['command_mode']] > 0.5 else 'effort',
+                   velocity_mode=bool(values[index['command_mode']] > 0.5),
                    command=signals['command'],
                    frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int),
                    position_frozen=signals['position_frozen'].astype(int),
@@ -246,7 +246,7 @@ class ResidualBatch:
         return ResidualFrame(
             stamp=float(self.stamp[k]), values={f: v[k] for f, v in self.values.items()},
             bounds={f: b[k] for f, b in self.bounds.items()}, velocity=self.velocity[k],
-            torque=self.torque[k], command_mode=VELOCITY if self.velocity_mode[k] else 'effort',
+            torque=self.torque[k], velocity_mode=bool(self.velocity_mode[k]),
             command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k],
             position_frozen=self.position_frozen[k], silent=self.silent[k],
             torque_scale=self.torque_scale[k],
@@ -281,7 +281,7 @@ class ResidualBatch:
                    values={family: rows(lambda f, k=family: f.values[k]) for family in FAMILIES},
                    bounds={family: rows(lambda f, k=family: f.bounds[k]) for family in FAMILIES},
                    velocity=rows(lambda f: f.velocity), torque=rows(lambda f: f.torque),
-                   velocity_mode=rows(lambda f: f.command_mode == VELOCITY),
+                   velocity_mode=rows(lambda f: f.velocity_mode),
                    command=rows(lambda f: f.command), frozen=rows(lambda f: f.frozen),
                    effort_frozen=rows(lambda f: f.effort_frozen),
                    position_frozen=rows(lambda f: f.position_frozen), silent=rows(lambda f: f.silent),
