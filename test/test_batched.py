@@ -6,8 +6,10 @@ against their loops.
 """
 from dataclasses import replace
 import math
+import warnings
 
 from hypothesis import given, settings, strategies as st
+
 import numpy as np
 import pytest
 
@@ -18,7 +20,7 @@ from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.app.config import load_residual_data, residual_data_for
 from youbot_fdi.fdi.pipeline import FdiPipeline
 from youbot_fdi.fdi.recursions import (affine_recursion, bounded_cusum, cusum, last_true_value,
-                                      run_lengths, scalar_recursion)
+                                      nan_median, run_lengths, scalar_recursion)
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
 from youbot_fdi.samples import SampleMapper
 from youbot_fdi.model import load_model
@@ -345,6 +347,21 @@ def test_smoothing_and_cusums_equal_their_loops(rows, seed):
            'held': bounded_cusum(steps, start, ceiling).reshape(rows, -1)}
     for name, rows_expected in expected.items():
         np.testing.assert_allclose(got[name], rows_expected, rtol=1e-9, atol=1e-9, err_msg=name)
+
+
+@settings(max_examples=80, deadline=None)
+@given(rows=st.integers(0, 6), width=st.integers(1, 6), seed=st.integers(0, 2**32 - 1))
+def test_nan_median_equals_numpys(rows, width, seed):
+    """The rows' median without NaN, as numpy's nanmedian gives it (NaN for a row of NaN)."""
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=(rows, width))
+    values[rng.random((rows, width)) < 0.3] = np.nan
+    values[rng.random((rows, width)) < 0.2] = 1.0  # ties
+    with np.errstate(all='ignore'), warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)  # numpy warns of all-NaN rows
+        expected = np.nanmedian(values, axis=-1)
+    np.testing.assert_array_equal(nan_median(values), expected)
+    np.testing.assert_array_equal(nan_median(values[0]) if rows else [], expected[0] if rows else [])
 
 
 @settings(max_examples=80, deadline=None)

@@ -38,10 +38,9 @@ def test_the_fit_recovers_friction_that_differs_by_direction_and_a_missed_inerti
                                  correction.inertia_limit + 1e-12)
 
 
-def test_one_sample_equals_a_block():
-    """The live observer's one-sample path (plain floats) equals the block path (numpy): the
-    parts, the current gate of the inertial feature and the wheels outside the calibrated range
-    (NaN readings included)."""
+def test_one_row_at_a_time_equals_a_block():
+    """The live observer's batch of one gives the block's bits: the parts, the current gate of
+    the inertial feature and the wheels outside the calibrated range (NaN readings included)."""
     from youbot_fdi.fdi.learned import inertial_feature
     rng = np.random.default_rng(1)
     ranges = np.tile([-2.0, 2.0], (4, 1))
@@ -55,10 +54,12 @@ def test_one_sample_equals_a_block():
     mask = wheel_mask(seen)
     assert 0 < np.count_nonzero(mask) < len(mask) and np.any(inertial == 0.0) and np.any(inertial != 0.0)
     for k in range(len(speed)):
-        one = correction.one_sample(speed[k], acceleration[k], torque[k], before[k], 2.5)
-        np.testing.assert_allclose(one[0], friction[k], rtol=1e-12, atol=1e-15)
-        np.testing.assert_allclose(one[1], inertial[k], rtol=1e-12, atol=1e-15)
-        assert one[2] == mask[k]
+        row = slice(k, k + 1)
+        one = correction.applied(speed[row], inertial_feature(acceleration[row], torque[row],
+                                                              before[row], 2.5))
+        np.testing.assert_array_equal(one[0], friction[row])
+        np.testing.assert_array_equal(one[1], inertial[row])
+        assert wheel_mask(one[2])[0] == mask[k]
     unbounded = TorqueCorrection(weights, np.full(4, 0.5), SCALE, np.full(4, 0.5))
     np.testing.assert_allclose(np.array([unbounded(v, a) for v, a in zip(speed[:50], acceleration[:50])]),
                                unbounded(speed[:50], acceleration[:50]))

@@ -289,13 +289,14 @@ def bench_learned():
     """The learned torque correction evaluated for one sample of four wheels (what the live
     observer adds per sample: the inertial feature's current gate, both parts within the
     calibrated range, the wheels outside it), against one numpy tanh of four values."""
-    from youbot_fdi.fdi.learned import FEATURES, TorqueCorrection
+    from youbot_fdi.fdi.learned import FEATURES, inertial_feature, TorqueCorrection
     rng = np.random.default_rng(0)
     ranges = np.tile([-1.0, 1.0], (4, 1))
     correction = TorqueCorrection(rng.normal(size=(4, FEATURES)), np.full(4, 0.1), 0.05, np.full(4, 0.1),
                                   ranges, 10.0 * ranges, 0.1)
-    speed, acceleration, torque, before = rng.normal(size=(4, 4))
-    value = 1e6 / _rate(lambda: correction.one_sample(speed, acceleration, torque, before, 1.0))
+    speed, acceleration, torque, before = rng.normal(size=(4, 1, 4))  # a batch of one sample
+    value = 1e6 / _rate(lambda: correction.applied(
+        speed, inertial_feature(acceleration, torque, before, 1.0)))
     baseline = 1e6 / _rate(lambda: np.tanh(speed))
     return BenchResult('learned correction: one sample, 4 wheels', value, 'us', 'np.tanh of 4 values',
                        baseline, f'target <= {LEARNED_TARGET_US:g} us')

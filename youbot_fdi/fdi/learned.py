@@ -52,7 +52,6 @@ runs (ridge least squares, numpy only: no training dependency).
 """
 from dataclasses import dataclass
 from functools import cached_property
-import math
 
 import numpy as np
 
@@ -193,38 +192,6 @@ class TorqueCorrection:
         seen = self.seen(mean_speed, acceleration)
         return (np.where(seen, self.friction(mean_speed), 0.0),
                 np.where(seen, self.inertial(acceleration), 0.0), seen)
-
-
-    @cached_property
-    def _scalars(self):
-        """:attr:`_prepared` as lists of floats, for :meth:`one_sample`."""
-        columns, _, _, bounds = self._prepared
-        return ([c.tolist() for c in columns], self.limit.tolist(), self.inertia_limit.tolist(),
-                [b.tolist() for b in bounds])
-
-    def one_sample(self, mean_speed, acceleration, torque, prev_torque, max_torque):
-        """One sample's (friction part, inertial part, :func:`wheel_mask` of the wheels outside
-        the calibrated range) from its (n,) mean speeds [rad/s], speed changes per second
-        [rad/s²] and torques at the interval's ends [N·m]: :meth:`applied` with
-        :func:`inertial_feature`, in plain floats (numpy's call overhead dominates four wheels:
-        the live observer's path; a test holds the two equal)."""
-        (w0, w1, w2, w3), limit, inertia_limit, (slow, fast, least, most) = self._scalars
-        level = SATURATION_SHARE * max_torque
-        friction, inertial, mask = [], [], 0.0
-        for w, (v, a, t, p) in enumerate(zip(mean_speed.tolist(), acceleration.tolist(),
-                                              torque.tolist(), prev_torque.tolist())):
-            if not abs(t) < level or not abs(p) < level:
-                a = 0.0
-            if slow[w] <= v <= fast[w] and least[w] <= a <= most[w]:
-                sign = math.tanh(v / self.speed_scale)
-                friction.append(min(max(w0[w] * sign + w1[w] * abs(sign) + w2[w] * v, -limit[w]),
-                                    limit[w]))
-                inertial.append(min(max(w3[w] * a, -inertia_limit[w]), inertia_limit[w]))
-            else:
-                friction.append(0.0)
-                inertial.append(0.0)
-                mask += 2.0 ** w
-        return np.array(friction), np.array(inertial), mask
 
 
 def wheel_mask(seen):

@@ -35,9 +35,10 @@ from typing import NamedTuple
 import numpy as np
 
 from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mask
-from youbot_fdi.fdi.recursions import affine_recursion, last_true_value, matvec, scalar_recursion
+from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, nan_median,
+                                       scalar_recursion)
 from youbot_fdi.model.dynamics import zoh_discretize
-from youbot_fdi.samples import CommandBatch, VELOCITY
+from youbot_fdi.samples import CommandBatch, JointBatch, VELOCITY
 from youbot_fdi.naming import wheel_suffix
 
 #: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
@@ -146,6 +147,14 @@ class PredictionBatch:
     def __len__(self):
         return len(self.stamp)
 
+    def prediction(self, k):
+        """Row ``k`` as a :class:`Prediction` (views)."""
+        wheels = {field: getattr(self, field)[k] for field in WHEEL_FIELDS}
+        return Prediction(stamp=float(self.stamp[k]), since=float(self.since[k]),
+                          velocity_mode=bool(self.velocity_mode[k]),
+                          load_factor=float(self.load_factor[k]),
+                          outside_calibration=float(self.outside_calibration[k]), **wheels)
+
     @classmethod
     def of_prediction(cls, prediction):
         """One :class:`Prediction` as a batch of one row (views; not a restart)."""
@@ -228,6 +237,8 @@ class ModelObserver:
 
     def _discrete_rows(self, dt):
         """(Phi, Gamma, Gamma^-1) per row of ``dt`` (N,): three (N, n, n) arrays."""
+        if len(dt) == 1:  # one row (the live path)
+            return tuple(m[None] for m in self._discrete(dt[0]))
         if np.all(dt == dt[0]):
             return tuple(np.broadcast_to(m, (len(dt),) + m.shape) for m in self._discrete(dt[0]))
         keys, inverse = np.unique(np.round(dt, DT_KEY_DECIMALS), return_inverse=True)
@@ -265,6 +276,8 @@ class ModelObserver:
         if low <= 0.0 and math.isinf(high):
             return 0.0
         speed = np.linalg.norm(mean_speed, axis=-1, keepdims=True)
+        if np.all((speed >= low) & (speed <= high)):  # within the range (usually): nothing missed
+            return 0.0
         near = np.clip(speed, low, high)
         scaled = mean_speed * np.divide(near, speed, out=np.ones_like(speed), where=speed > 0.0)
         level = np.abs(self.friction * scaled + self._coulomb(scaled)[1])
@@ -421,6 +434,9 @@ class ModelObserver:
         """
         rows, n = len(dt), self.n
         steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
+        if rows == 1:  # one row (the live path): the arithmetic below without the scan's bookkeeping
+            return self._command_row(int(steps[0]), bool(hold[0]), held, bool(velocity_mode[0]),
+                                     target, friction)[None]
         a = np.zeros((rows, 2 * n, 2 * n))
         b = np.array(held, dtype=float)
         advancing = ~hold
@@ -452,6 +468,23 @@ class ModelObserver:
                 k += 1
         return states
 
+    def _command_row(self, steps, hold, held, velocity_mode, target, friction):
+        """:meth:`_command_path` of one row (``held``, ``target``, ``friction`` (1, ...)): the same
+        products in the same order (so the same bits), the state after it (2n,)."""
+        state = self._command_state
+        if hold:
+            linear = np.zeros((2 * self.n, 2 * self.n)) @ state + held[0]
+        else:
+            loop_a, loop_b, loop_c = self._loop_step(steps)
+            with np.errstate(over='ignore', invalid='ignore'):
+                linear = loop_a @ state + (target @ loop_b.T + friction @ loop_c.T)[0]
+        if not hold and velocity_mode:
+            with np.errstate(over='ignore', invalid='ignore'):
+                saturated = self._saturated(state[None], linear[None], target)[0]
+            if saturated:
+                return self._command_step(state, steps, target[0], friction[0])[0]
+        return linear
+
     # ------------------------------------------------------------------ the model's torque
     # Shapes (n,) for one sample or (N, n) for a block.
     def _explained(self, velocity, prev_velocity, phi, gamma_inv, step, torque, prev_torque):
@@ -472,13 +505,9 @@ class ModelObserver:
         outside = np.zeros(np.shape(velocity)[:-1])
         if self.correction is not None:  # what the physics misses (see fdi/learned.py)
             acceleration = (velocity - prev_velocity) / step
-            if np.ndim(velocity) == 1:  # one sample (the live observer): in plain floats
-                learned_friction, learned_inertia, outside = self.correction.one_sample(
-                    mean_speed, acceleration, torque, prev_torque, self.max_torque)
-            else:
-                learned_friction, learned_inertia, seen = self.correction.applied(
-                    mean_speed, inertial_feature(acceleration, torque, prev_torque, self.max_torque))
-                outside = wheel_mask(seen)
+            learned_friction, learned_inertia, seen = self.correction.applied(
+                mean_speed, inertial_feature(acceleration, torque, prev_torque, self.max_torque))
+            outside = wheel_mask(seen)
             coulomb = coulomb + learned_friction
             explained = explained + learned_inertia
         return ExplainedTorque(explained + coulomb, friction, coulomb, unseen, outside)
@@ -509,8 +538,7 @@ class ModelObserver:
         votes = np.abs(friction) >= self.settings.torque_sigma
         ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
         voted = np.count_nonzero(votes, axis=-1) >= min(MIN_LOAD_VOTES, n)
-        with np.errstate(all='ignore'):
-            shared = np.nanmedian(np.where(voted[..., None], ratio, 1.0), axis=-1)
+        shared = nan_median(np.where(voted[..., None], ratio, 1.0))
         # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
         return np.maximum(shared, 0.0), voted
 
@@ -522,63 +550,10 @@ class ModelObserver:
     def update(self, sample):
         """The :class:`Prediction` for one /joint_states sample
         (:class:`~youbot_fdi.samples.JointSample`), or None when it (re)starts the observer (the
-        first sample, or after a gap or a stamp going backwards or repeated).
-
-        The live node's path: the computation of :meth:`update_batch` for one sample, step by step
-        (the same helpers; a test holds the two equal on fault recordings).
-        """
-        s, n = self.settings, self.n
-        stamp = sample.stamp
-        velocity, torque = self.signs * sample.velocity, self.signs * sample.effort
-        modes, targets = self._commands_in_force(np.array([stamp]))
-        velocity_mode, target = bool(modes[0]), targets[0]
-        dt = None if self._last is None else stamp - self._last[0]
-        if dt is None or not 0.0 < dt <= s.data_timeout:
-            if dt is not None:
-                self._count_restarts(np.array([dt]))
-            self._restart(stamp, velocity, torque, velocity_mode, target)
-            return None
-        last_stamp, last_velocity, last_torque = self._last
-        phi, gamma, gamma_inv = self._discrete(dt)
-        explained, friction, coulomb, unseen, outside = self._explained(
-            velocity, last_velocity, phi, gamma_inv, dt, torque, last_torque)
-        torque = signed_torque(torque, explained, self.signed_effort)
-        mean_torque = 0.5 * (torque + last_torque)
-        keep = self._smoothing(dt)
-        smoothed = keep * self._load[0] + (1.0 - keep) * np.concatenate(
-            self._load_votes(mean_torque, explained, friction))
-        shared, voted = self._load_factor(smoothed, self._load[1])
-        load = float(shared) if voted else self._load[1]
-        self._load = (smoothed, load)
-        # The load condition adds to the friction the predictions work against (at the measured speed).
-        coulomb = coulomb + (load - 1.0) * friction
-
-        applied = mean_torque if np.isfinite(mean_torque).all() else 0.0
-        predicted = phi @ self._observer + gamma @ (applied - coulomb)
-        self._observer = predicted + (dt / s.observer_time_constant) * (velocity - predicted)
-
-        before = self._command_state[:n]
-        steps = max(1, int(np.rint(dt / self.period)))
-        beyond = self._beyond_current(torque)
-        # The row after one beyond the calibrated current re-syncs too: its current is within the
-        # loop's range again, so the PI integral it implies is the loop's (one inferred from a
-        # clipped current is not).
-        resync, self._was_beyond = beyond.any() or self._was_beyond, bool(beyond.any())
-        if velocity_mode and not resync:
-            self._command_state = self._command_step(self._command_state, steps, target, coulomb)[0]
-        else:  # current mode, or a current calibration never saw: the measured state
-            self._command_state = np.concatenate([velocity, self._start_integral(
-                torque, velocity, velocity_mode, target) if velocity_mode else np.zeros(n)])
-        outside = float(int(outside) | int(wheel_mask(~self._unseen_current(torque))))
-        prediction = Prediction(
-            stamp=stamp, since=last_stamp, from_currents=predicted,
-            from_commands=self._command_state[:n], commands_before=before, commanded=target,
-            commanded_before=self._last_target, velocity_mode=velocity_mode, explained=explained,
-            friction=friction, unseen_friction=unseen, load_factor=load,
-            outside_calibration=float(outside))
-        self._last_target = target
-        self._last = (stamp, velocity, torque)
-        return prediction
+        first sample, or after a gap or a stamp going backwards or repeated): :meth:`update_batch`
+        of a batch of one."""
+        batch = self.update_batch(JointBatch.of_sample(sample))
+        return None if batch.restart[0] else batch.prediction(0)
 
     def update_batch(self, joints, commands=None, commands_before=None):
         """The predictions of a block of /joint_states samples

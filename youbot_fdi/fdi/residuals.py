@@ -99,7 +99,9 @@ PRIOR_SETTINGS = FdiSettings()
 def columns(*values):
     """The arrays (or scalars) ``values``, broadcast together, as the columns of one array
     (..., k): a bound's features (cheaper than stacking broadcast copies)."""
-    shape = np.broadcast_shapes(*(np.shape(v) for v in values))
+    shapes = [np.shape(v) for v in values]
+    arrays = set(shapes) - {()}
+    shape = arrays.pop() if len(arrays) == 1 else np.broadcast_shapes(*shapes)
     out = np.empty(shape + (len(values),))
     for j, value in enumerate(values):
         out[..., j] = value
@@ -333,6 +335,7 @@ class ResidualEvaluator:
         self.loop_compliance = 1.0 / stiffness if stiffness > 0.0 else 0.0
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
+        self._calibrated = {family: bool(np.isfinite(r).any()) for family, r in self._ranges.items()}
         self._beyond = {family: np.maximum(self._coefficients[family],
                                            bound_weights(PRIOR_SETTINGS, family))
                         for family in BOUND_TERMS}
@@ -411,7 +414,7 @@ class ResidualEvaluator:
         the larger of its learned and its default weight (honest extrapolation)."""
         inside = np.minimum(features, self._ranges[family])
         bound = inside @ self._coefficients[family]
-        if np.isfinite(self._ranges[family]).any():
+        if self._calibrated[family]:
             bound = bound + (features - inside) @ self._beyond[family]
         return bound
 
