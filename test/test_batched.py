@@ -389,7 +389,8 @@ def test_run_lengths_and_last_values_equal_their_loops(flags, carry, seed):
 @given(rows=st.integers(1, 60), seed=st.integers(0, 2**32 - 1))
 def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     """Evidence (the magnitude CUSUM, and the torque shift CUSUMs against a level that holds still
-    while the wheel's torque alarm is set), the shared-evidence rule and release hysteresis over a
+    while the wheel's torque alarm is set), the shared-evidence rule, alarms raised only by evidence
+    that grows, and release hysteresis over a
     block, from any state it was left in, equal the one-row recursions; so do the rows in which the
     base breaks away from rest (no torque evidence, the level starts afresh) and those in which
     the wheels leave the level's operating point (the level starts afresh)."""
@@ -424,6 +425,8 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     threshold = s.family_thresholds[0]  # the same for every family by default
     level_share = 0.5 * threshold
     scale = threshold / s.shift_threshold
+    judged_before = evidence.copy()
+    judged_before[0] = np.maximum(judged_before[0], shift.max(axis=0) * scale)
     for k in range(rows):
         was_up = np.maximum(evidence, np.vstack([np.maximum(shift.max(axis=0) * scale, evidence[0]),
                                                  evidence[1:]])) >= level_share
@@ -468,7 +471,10 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
                 if together >= 2 or (np.count_nonzero(up[family]) >= 2 and scores[family, w] < 3.0):
                     over[family, w] = False
         below = np.where(over, 0.0, np.where(excited[k], below + row_weight * s.evidence_interval, below))
-        alarm = np.where(over, True, np.where(below >= s.release_time - 1e-9, False, alarm))
+        # raised where the evidence is over and grows; held while it is over
+        alarm = np.where(over & (judged > judged_before), True,
+                         np.where(below >= s.release_time - 1e-9, False, alarm))
+        judged_before = judged
         np.testing.assert_array_equal(got[k], alarm)
     np.testing.assert_allclose(batched._evidence, evidence, atol=1e-9)
     np.testing.assert_allclose(batched._shift, shift, atol=1e-9)

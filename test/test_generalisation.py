@@ -429,7 +429,8 @@ def _contact_model(ratio):
 def test_a_wheel_outside_the_contact_laws_calibrated_range_is_allowed_the_shortfall():
     """Below the lowest rolling share seen in calibration the law is extrapolated: the torque
     bound allows the Coulomb level times the shortfall, the command bound what the loop's
-    proportional gain leaves of it; nothing changes without the law or inside its range."""
+    proportional gain leaves of it; nothing more without the law or inside its range than what
+    every gliding roller is allowed (:func:`test_a_gliding_roller_is_allowed_its_coulomb_level`)."""
     from youbot_fdi.fdi.observer import ModelObserver
     from youbot_fdi.samples import JointBatch, JointSample
     speeds = np.array([[0.1, 4.0, 4.0, 0.1]])  # wheels 1 and 4 turn slowly while their contacts slide
@@ -438,13 +439,14 @@ def test_a_wheel_outside_the_contact_laws_calibrated_range_is_allowed_the_shortf
     share = dyn.rolling_shares(speeds)[0]
     assert share[0] < 0.3 and share[1] > 0.6
     floor = 0.6
+    glide = np.abs(dyn.coulomb_level(dyn.kinematics.roller_slide(speeds)))
     observer = ModelObserver(model, replace(FdiSettings(), contact_share_floor=floor))
     _, level, unseen = observer._coulomb(speeds)
-    np.testing.assert_allclose(unseen[0], level[0] * np.maximum(0.0, floor - share))
-    assert unseen[0, 0] > 0.0 and unseen[0, 1] == 0.0
-    assert not ModelObserver(model, FdiSettings())._coulomb(speeds)[2].any()  # floor 0: no limit
-    assert not ModelObserver(_contact_model(0.0), replace(FdiSettings(), contact_share_floor=floor)) \
-        ._coulomb(speeds)[2].any()  # per-wheel Coulomb: no contact law to extrapolate
+    np.testing.assert_allclose(unseen[0] - glide[0], np.abs(level[0]) * np.maximum(0.0, floor - share))
+    assert unseen[0, 0] > glide[0, 0] and unseen[0, 1] == glide[0, 1]
+    np.testing.assert_array_equal(ModelObserver(model, FdiSettings())._coulomb(speeds)[2], glide)  # floor 0
+    np.testing.assert_array_equal(ModelObserver(_contact_model(0.0), replace(
+        FdiSettings(), contact_share_floor=floor))._coulomb(speeds)[2], glide)  # no contact law
 
     def bounds(settings):
         samples = [JointSample(0.01 * k, speeds[0] * 0.01 * k, speeds[0], 0.2 * np.sign(speeds[0]))
@@ -459,12 +461,34 @@ def test_a_wheel_outside_the_contact_laws_calibrated_range_is_allowed_the_shortf
         return frames[-1], generator.last_prediction
 
     wide, prediction = bounds(replace(FdiSettings(), contact_share_floor=floor))
-    narrow, _ = bounds(FdiSettings())
-    extra = np.abs(prediction.load_factor * prediction.unseen_friction)
+    narrow, glided = bounds(FdiSettings())
+    extra = np.abs(prediction.load_factor * prediction.unseen_friction) - np.abs(
+        glided.load_factor * glided.unseen_friction)
     np.testing.assert_allclose(wide.bounds['torque'] - narrow.bounds['torque'], extra, atol=1e-12)
     compliance = 1.0 / (model.firmware.velocity_kp * model.drive.torque_per_amp)
     np.testing.assert_allclose(wide.bounds['command'] - narrow.bounds['command'], extra * compliance,
                                atol=1e-12)
+
+
+def test_a_gliding_roller_is_allowed_its_coulomb_level():
+    """A contact that slides along its roller's free direction (the two standing wheels of a
+    diagonal drive, every wheel of a sideways one) may pass its wheel up to the Coulomb level of
+    that slide, F_c tanh(|u| / v_s): unseen friction, at a standing wheel too; a wheel whose
+    contact only rolls (driving straight ahead) is allowed nothing."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    model = _contact_model(0.0)
+    kinematics, dyn = model.kinematics, model.dynamics
+    observer = ModelObserver(model, FdiSettings())
+    ahead, sideways, diagonal = (kinematics.inverse(np.array(twist)) for twist in
+                                 ((0.3, 0.0, 0.0), (0.0, 0.3, 0.0), (0.3, 0.3, 0.0)))
+    np.testing.assert_allclose(observer._coulomb(ahead)[2], 0.0, atol=1e-12)
+    slide = kinematics.roller_slide(sideways)
+    assert np.all(np.abs(slide) > 1.0)  # every contact glides sideways
+    np.testing.assert_allclose(observer._coulomb(sideways)[2],
+                               0.3 * np.tanh(np.abs(slide) / dyn.parameters.coulomb_velocity_scale))
+    standing = np.abs(diagonal) < 1e-9
+    assert standing.sum() == 2
+    assert np.all(observer._coulomb(diagonal)[2][standing] > 0.2)  # standing wheels, gliding rollers
 
 
 def test_the_calibrated_range_warn_is_the_same_frame_by_frame_and_in_a_block(model):

@@ -198,3 +198,30 @@ def test_friction_beyond_the_calibrated_speeds_is_allowed_between_its_extrapolat
     fast = direction * calibrated * 2.0  # twice as fast: all-viscous doubles it
     np.testing.assert_allclose(observer._speed_extrapolation(fast), level_there)
     assert ModelObserver(model, FdiSettings())._speed_extrapolation(slow) == 0.0  # no calibration
+
+
+def test_evidence_that_drains_holds_no_new_alarm(model):
+    """Two wheels' command residuals rise together (a shared change: no wheel fault) and fall
+    back; the first drains at 1 a sample (score 0), the second at 0.5 (score 0.5), so after 7
+    samples only the second is over the threshold, no longer shared. Evidence that drains tells of the
+    shared excess, not of a fault now: no alarm. The second wheel's own excess after that (score
+    2.5, evidence growing by 1.5 a sample from where it drained to) is one, on that wheel."""
+    s = FdiSettings()
+    decision = DecisionMaker(model.wheel_names, replace(s, breakaway_time=0.0), load_residual_data())
+    n = len(model.wheel_names)
+
+    def scores(first, second):
+        f = frame(model, 0.0, 0.0)
+        values = dict(f.values, command=np.array([first, second, 0.0, 0.0]))
+        return values
+
+    plan = [(3.0, 3.0)] * 4 + [(0.0, 0.5)] * 8 + [(0.0, 2.5)] * 4
+    events = []
+    for k, (first, second) in enumerate(plan):
+        f = replace(frame(model, 10.0 + 0.01 * k, 0.0), values=scores(first, second))
+        events += [(k, e.wheel) for e in decision.update(f) if e.level == 'ERROR']
+    threshold = s.family_thresholds[FAMILIES.index('command')]
+    assert 4 * 2.0 >= threshold  # both over the threshold together: shared
+    # after 7 samples the first is under half the threshold (no longer up), the second still over
+    assert 4 * 2.0 - 7 * 1.0 < 0.5 * threshold and 4 * 2.0 - 8 * 0.5 >= threshold
+    assert n == 4 and events and events[0] == (12, model.wheel_names[1])

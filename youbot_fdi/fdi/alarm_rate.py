@@ -13,6 +13,8 @@ calibration did not see (the bounds' extrapolation does, ``fdi/residuals.py``).
 
 Plain numpy; ``identify`` feeds it held-back scores and prints the rate at each threshold.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
 import math
 
@@ -34,13 +36,13 @@ class RateEstimate:
     blocks_per_hour: float
     streams: int
 
-    def rate(self, threshold):
+    def rate(self, threshold: float) -> float:
         """Alarms per hour of driving at ``threshold`` (all streams), an upper bound."""
         if math.isinf(self.exponent):
             return 0.0
         return self.streams * self.blocks_per_hour * math.exp(-self.exponent * threshold)
 
-    def threshold(self, rate):
+    def threshold(self, rate: float) -> float:
         """The lowest threshold whose :meth:`rate` is at most ``rate`` [per hour] (inf: none)."""
         if math.isinf(self.exponent):
             return 0.0
@@ -49,7 +51,7 @@ class RateEstimate:
         return max(0.0, math.log(self.streams * self.blocks_per_hour / rate) / self.exponent)
 
 
-def correlation_length(scores):
+def correlation_length(scores: np.ndarray) -> int:
     """Samples (>= 1) over which scores (N, streams) stay correlated: the first lag whose
     autocorrelation, pooled over the streams, falls below :data:`BLOCK_CORRELATION`."""
     centred = scores - np.nanmean(scores, axis=0)
@@ -63,7 +65,7 @@ def correlation_length(scores):
     return min(MAX_BLOCK, max(1, len(scores) // 4))
 
 
-def lundberg_exponent(sums):
+def lundberg_exponent(sums: np.ndarray) -> float:
     """The positive root theta of ``log mean(exp(theta X)) = 0`` for block sums X (M,); inf when
     no sum is positive, 0 when their mean is not negative."""
     x = np.asarray(sums, dtype=float)
@@ -86,7 +88,7 @@ def lundberg_exponent(sums):
     return 0.5 * (low + high)
 
 
-def estimate(increments, scores, interval):
+def estimate(increments: np.ndarray, scores: np.ndarray, interval: float) -> RateEstimate:
     """The :class:`RateEstimate` of a CUSUM whose increments (N, streams) come from ``scores``
     (N, streams) sampled every ``interval`` [s] (NaN rows: no data, left out)."""
     increments = np.asarray(increments, dtype=float)

@@ -43,8 +43,11 @@
    tied to a wheel; the detail names the wheels) when a wheel's operating point leaves what
    ``identify`` saw, so the physics alone judges it; ``OK`` after ``unseen_release`` s back inside.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
 import json
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -55,6 +58,11 @@ from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSet
 from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum, last_true_value
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualBatch
 from youbot_fdi.naming import wheel_suffix
+
+if TYPE_CHECKING:  # names in annotations only
+    from collections.abc import Sequence
+    from youbot_fdi.fdi.residuals import ResidualFrame
+    from youbot_fdi.fdi.settings import FdiSettings
 
 OK, WARN, ERROR = Level.OK, Level.WARN, Level.ERROR  # short names for this module
 TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'encoder'))
@@ -97,12 +105,12 @@ class FaultEvent:
     residuals: tuple = ()  # the alarming residuals behind it
     detail: str = ''
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         """The JSON object of an events file line."""
         return {'stamp': round(self.stamp, 6), 'level': self.level, 'wheel': self.wheel,
                 'fault': self.fault, 'residuals': list(self.residuals), 'detail': self.detail}
 
-    def to_json(self):
+    def to_json(self) -> str:
         """One line of an events file."""
         return json.dumps(self.to_dict())
 
@@ -116,7 +124,7 @@ class _Component:
     cleared: int = -1  # the classification history counts rows after this one
 
 
-def condition_changes(level, enter, leave):
+def condition_changes(level: Level, enter: np.ndarray, leave: np.ndarray) -> list[tuple[int, Level]]:
     """Where a two-state base condition changes over rows: starting at ``level`` (OK or WARN) it
     goes to WARN at the first row of ``enter`` (N,) bool while OK and back to OK at the first row
     of ``leave`` (N,) bool while WARN; returns [(row, new level)] in row order."""
@@ -144,7 +152,7 @@ class DecisionMaker:
         their fault signatures.
     """
 
-    def __init__(self, wheel_names, settings, residual_data):
+    def __init__(self, wheel_names: Sequence[str], settings: FdiSettings, residual_data: dict) -> None:
         self.wheel_names = list(wheel_names)
         self.suffixes = [wheel_suffix(w) for w in self.wheel_names]
         self.settings = settings
@@ -224,7 +232,7 @@ class DecisionMaker:
         self._rest_stamp = float(rest[-1])
         return ~resting & (stamps - rest < self.settings.breakaway_time)
 
-    def operating_point_changes(self, velocity):
+    def operating_point_changes(self, velocity: np.ndarray) -> np.ndarray:
         """Rows (N,) of speeds ``velocity`` (N, n) [rad/s] in which the wheels leave the operating
         point the torque levels were learned at, which then starts afresh there. The operating
         point is the mean of the speeds read since it started; a row leaves it when some wheel's
@@ -275,7 +283,7 @@ class DecisionMaker:
         return (np.maximum(s.shift_operating_range * np.max(np.abs(means), axis=-1), s.stuck_speed)
                 + OPERATING_NOISE_SIGMAS * s.speed_sigma)
 
-    def sample_weights(self, stamps):
+    def sample_weights(self, stamps: np.ndarray) -> np.ndarray:
         """The evidence weight of each row at ``stamps`` (N,) [s]: ``min(1, dt / evidence_interval)``
         with dt since the row before (1 for the first row after a start)."""
         steps = np.diff(np.concatenate([[self._last_stamp], np.asarray(stamps, dtype=float)]))
@@ -283,7 +291,7 @@ class DecisionMaker:
         weight = np.where(steps >= interval - STAMP_TOLERANCE, 1.0, steps / interval)  # stamps round
         return np.where(np.isfinite(weight) & (weight > 0.0), weight, 1.0)
 
-    def evidence(self, z, shift, weight):
+    def evidence(self, z: np.ndarray, shift: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """The accumulated evidence (N, families, n) after each row of scores ``z`` (N, families,
         n) and torque shift scores ``shift`` (N, n), each row weighted by ``weight`` (N,)
         (:meth:`sample_weights`), continuing from the state before; leaves the state after the last
@@ -301,7 +309,8 @@ class DecisionMaker:
         self._evidence, self._shift = g[-1], shifted[-1]
         return self._judged(g, shifted)
 
-    def increments(self, z, shift, weight):
+    def increments(self, z: np.ndarray, shift: np.ndarray,
+                   weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The CUSUMs' increments: of the magnitudes (N, families, n), ``min(z, cap) -
         evidence_drift``, and of the torque shifts up and down (N, 2, n), ``min(+-shift, cap) -
         shift_drift``, each row weighted by ``weight`` (N,). Stateless (``identify`` bounds the
@@ -321,7 +330,8 @@ class DecisionMaker:
                                             shift.max(axis=-2) / self.settings.shift_threshold)
         return judged
 
-    def torque_shift(self, residual, bound, scale, stamps, hold, fresh):
+    def torque_shift(self, residual: np.ndarray, bound: np.ndarray, scale: np.ndarray,
+                     stamps: np.ndarray, hold: np.ndarray, fresh: np.ndarray) -> np.ndarray:
         """Each wheel's torque residual's departure from its recent level, in its scale: ``(r_k -
         m_{k-1}) / s_k`` (N, n), from the torque residuals ``residual``, their bounds ``bound`` and
         scales ``scale`` (the bound without its allowances for steady biases, which cancel in a
@@ -410,10 +420,12 @@ class DecisionMaker:
     def _alarms_holding(self, z, excited, stamps, torque, torque_bound, torque_scale, hold, fresh):
         """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout.
 
-        Sequentially: an alarm is set while the evidence is at the threshold, cleared once
-        ``below`` (excited time since it last was, each row's weighted time) reaches
-        ``release_time``, and otherwise kept. So the alarm after row k is decided by the latest row
-        that set or cleared it.
+        Sequentially: an alarm is set where the evidence is at the threshold and grows, cleared
+        once ``below`` (excited time since it last was at the threshold, each row's weighted time)
+        reaches ``release_time``, and otherwise kept. So the alarm after row k is decided by the
+        latest row that set or cleared it. Evidence at the threshold that drains tells of an
+        excess past, which was not a fault then (it was shared with other wheels, whose evidence
+        has since drained faster): it holds an alarm, it does not raise one.
         """
         threshold = 1.0  # the evidence is judged in thresholds
         before = self._judged(self._evidence, self._shift)
@@ -425,16 +437,18 @@ class DecisionMaker:
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps)
         rows = len(over)
+        growing = evidence > np.concatenate([before[None], evidence[:-1]])
+        raised = over & growing
         release = self.settings.release_time - STAMP_TOLERANCE  # summed steps round
         if rows == 1:  # the same latch, one row (the live path)
             self._below = np.where(over[0], 0.0, self._below + excited[0] * step[0])
-            self.alarm = over[0] | (self.alarm & (self._below < release))
+            self.alarm = raised[0] | (self.alarm & (self._below < release))
             return self.alarm[None]
         counted = np.cumsum((excited[:, None, :] & ~over) * step[:, None, None], axis=0)
         at_last_over = np.maximum.accumulate(np.where(over, counted, -1), axis=0)
         below = np.where(at_last_over >= 0, counted - at_last_over, self._below + counted)
         index = np.arange(rows)[:, None, None]
-        last_set = np.maximum.accumulate(np.where(over, index, -1), axis=0)
+        last_set = np.maximum.accumulate(np.where(raised, index, -1), axis=0)
         last_clear = np.maximum.accumulate(np.where(below >= release, index, -1), axis=0)
         alarm = np.where(last_set > last_clear, True, np.where(last_clear > last_set, False, self.alarm))
         self._pass['below'], self._pass['alarm'] = below, alarm
@@ -656,12 +670,12 @@ class DecisionMaker:
         component.level, component.fault = level, fault
         return FaultEvent(stamp, level, key, fault, tuple(residuals), detail)
 
-    def update(self, frame):
+    def update(self, frame: ResidualFrame) -> list[FaultEvent]:
         """Process one residual frame; returns the fault events it causes (usually none): a
         batch of one (:meth:`update_batch`)."""
         return self.update_batch(ResidualBatch.of_frames([frame]))
 
-    def update_batch(self, batch):
+    def update_batch(self, batch: ResidualBatch) -> list[FaultEvent]:
         """Process a :class:`~youbot_fdi.fdi.residuals.ResidualBatch`; returns its events (the
         same whatever the batches it is cut into)."""
         return self.lifecycle.feed(self._update_batch(batch), batch.stamp)
@@ -791,21 +805,21 @@ class DecisionMaker:
     def _wheel_alarms(self, w):
         return bool(self.alarm[:, w].any())
 
-    def data_stalled(self, last_stamp):
+    def data_stalled(self, last_stamp: float) -> list[FaultEvent]:
         """No /joint_states since ``last_stamp`` for longer than comm_timeout: comm_loss of the base."""
         event = self._transition(BASE, ERROR, FaultKind.COMM_LOSS.value,
                                  last_stamp + self.settings.data_timeout, (),
                                  f'no /joint_states for more than {self.settings.data_timeout:g} s')
         return self.lifecycle.immediate(event) if event is not None else []
 
-    def data_resumed(self, stamp):
+    def data_resumed(self, stamp: float) -> list[FaultEvent]:
         """Fresh data after a stall: the base's comm_loss clears."""
         if self.components[BASE].level == OK:
             return []
         event = self._transition(BASE, OK, FaultKind.COMM_LOSS.value, stamp, (), 'data resumed')
         return self.lifecycle.feed([event], [stamp]) if event is not None else []
 
-    def reset(self, stamp, detail='reset after a repair'):
+    def reset(self, stamp: float, detail: str = 'reset after a repair') -> list[FaultEvent]:
         """Clear every latched fault (after a repair): the evidence, the alarms and the load
         condition start afresh; one OK event per component that was not OK, stamped ``stamp``
         [s]. Returns (events, what was cleared as 'wheel: fault' strings)."""
@@ -827,6 +841,6 @@ class DecisionMaker:
         self._rise[:] = NEVER
         return events, cleared
 
-    def states(self):
+    def states(self) -> dict[str, tuple[Level, str]]:
         """Component -> (level, fault) as published (the base's own faults, not its conditions)."""
         return {k: self.lifecycle.shown((k, FAULT_CHANNEL)) for k in self.components}

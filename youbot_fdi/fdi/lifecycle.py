@@ -15,12 +15,20 @@ Timed by the sample stamps of the rows the decision judged, never by a wall cloc
 and the live nodes publish the same events; :meth:`EventLifecycle.feed` takes a block of rows
 (the replay) or one (the nodes). Plain Python, one explicit state record per component.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass, replace
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from youbot_fdi.faults import CONDITIONS, Level
+
+if TYPE_CHECKING:  # names in annotations only
+    from collections.abc import Iterable
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.fdi.decision import FaultEvent
 
 OK = Level.OK
 FAULT_CHANNEL = 'fault'  # a wheel's faults, or the base's own (comm_loss): one channel each
@@ -36,7 +44,7 @@ class LifecycleSettings:
     dwell: float = 0.5
 
     @classmethod
-    def of(cls, settings):
+    def of(cls, settings: FdiSettings) -> LifecycleSettings:
         """From :class:`~youbot_fdi.fdi.settings.FdiSettings`."""
         return cls(settings.confirm_time, settings.heal_time, settings.dwell)
 
@@ -61,12 +69,12 @@ class Episode:
         return (OK, '') if self.raw is None or self.raw.level == OK else (self.raw.level, self.raw.fault)
 
 
-def component(event):
+def component(event: FaultEvent) -> str:
     """The lifecycle component of an event: (wheel or None, channel)."""
     return (event.wheel, event.fault if event.fault in CONDITIONS else FAULT_CHANNEL)
 
 
-def closest_events(events):
+def closest_events(events: Iterable[FaultEvent]) -> float:
     """The shortest time [s] between two published events of one component in ``events`` (any
     order; inf with no component evented twice): the dwell bounds it from below (the fault
     benchmark prints it per suite)."""
@@ -82,7 +90,7 @@ def closest_events(events):
 class EventLifecycle:
     """Raw decision events in, published episodes out (see the module docstring)."""
 
-    def __init__(self, settings):
+    def __init__(self, settings: LifecycleSettings) -> None:
         self.settings = settings
         self.episodes = {}  # component -> Episode
 
@@ -132,7 +140,7 @@ class EventLifecycle:
             episode.returns += 1  # back within the episode: held, counted
         episode.raw, episode.raw_since = event, event.stamp
 
-    def feed(self, raw_events, stamps):
+    def feed(self, raw_events: list[FaultEvent], stamps: np.ndarray) -> list[FaultEvent]:
         """The published events of a block of rows stamped ``stamps`` (N,) [s] (sorted) whose raw
         events are ``raw_events`` (stamped at those rows, in order). A row's raw events are taken
         before anything due at that row is published; publications carry their row's stamp."""
@@ -161,7 +169,7 @@ class EventLifecycle:
             self._take(event)
         return published
 
-    def immediate(self, event):
+    def immediate(self, event: FaultEvent) -> list[FaultEvent]:
         """A raw event that is its own confirmation (the base silent for the data timeout):
         published at once (the dwell still holds it back if an event was just published)."""
         self._take(event)
@@ -170,7 +178,7 @@ class EventLifecycle:
             return [e for e in (self._publish(episode, event.stamp),) if e is not None]
         return []
 
-    def reset(self, stamp, detail):
+    def reset(self, stamp: float, detail: str) -> list[FaultEvent]:
         """Every component back to OK at once (a repair): the OK events of what was shown."""
         events = []
         for episode in self.episodes.values():
@@ -180,7 +188,7 @@ class EventLifecycle:
         self.episodes.clear()
         return events
 
-    def shown(self, key):
+    def shown(self, key: tuple[str, str]) -> tuple[Level, str]:
         """(level, fault) a component shows."""
         episode = self.episodes.get(key)
         return (OK, '') if episode is None else episode.shown_state

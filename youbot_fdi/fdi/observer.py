@@ -28,9 +28,11 @@ its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerat
 :meth:`ModelObserver.update_batch` computes a block of samples at once (the replay);
 :meth:`ModelObserver.update` is the same computation for one sample (the live node).
 """
+from __future__ import annotations
+
 from dataclasses import dataclass, replace
 import math
-from typing import NamedTuple
+from typing import NamedTuple, TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +42,12 @@ from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, JointBatch, VELOCITY
 from youbot_fdi.naming import wheel_suffix
+
+if TYPE_CHECKING:  # names in annotations only
+    from collections.abc import Sequence
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model.profile import PlatformModel
+    from youbot_fdi.samples import CommandSample, JointSample
 
 #: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
 STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
@@ -60,7 +68,7 @@ WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded'
 SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor', 'outside_calibration')
 
 
-def signed_torque(torque, reference, signed_effort):
+def signed_torque(torque: np.ndarray, reference: np.ndarray, signed_effort: bool) -> np.ndarray:
     """The measured torque; a magnitude (``signed_effort`` false) takes the sign of ``reference``
     (the explained torque, or at a restart the speed)."""
     return torque if signed_effort else np.abs(torque) * np.sign(reference)
@@ -88,14 +96,14 @@ class Prediction:
     outside_calibration: float = 0.0
 
     @staticmethod
-    def labels(wheel_names):
+    def labels(wheel_names: Sequence[str]) -> list[str]:
         """The labels of :meth:`to_vector`: ``<field>_<w>`` for the per-wheel fields
         (:data:`WHEEL_FIELDS`), then ``since``, ``velocity_mode`` (1/0), ``load_factor`` and
         ``outside_calibration``."""
         suffixes = [wheel_suffix(w) for w in wheel_names]
         return [f'{field}_{s}' for field in WHEEL_FIELDS for s in suffixes] + list(SCALAR_FIELDS)
 
-    def to_vector(self, signs):
+    def to_vector(self, signs: np.ndarray) -> np.ndarray:
         """The values of :meth:`labels`, per-wheel fields in driver convention (``signs``: the
         drive signs). :meth:`from_labelled` inverts it exactly (a sign flip is exact)."""
         return np.concatenate([signs * getattr(self, field) for field in WHEEL_FIELDS]
@@ -103,7 +111,8 @@ class Prediction:
                                   self.outside_calibration]])
 
     @classmethod
-    def from_labelled(cls, stamp, labels, values, wheel_names, signs):
+    def from_labelled(cls, stamp: float, labels: Sequence[str], values: np.ndarray,
+                      wheel_names: Sequence[str], signs: np.ndarray) -> Prediction:
         """Rebuild a prediction from :meth:`labels` and :meth:`to_vector` (matched by label);
         ValueError naming the first missing label."""
         wanted = cls.labels(wheel_names)
@@ -147,7 +156,7 @@ class PredictionBatch:
     def __len__(self):
         return len(self.stamp)
 
-    def prediction(self, k):
+    def prediction(self, k: int) -> Prediction:
         """Row ``k`` as a :class:`Prediction` (views)."""
         wheels = {field: getattr(self, field)[k] for field in WHEEL_FIELDS}
         return Prediction(stamp=float(self.stamp[k]), since=float(self.since[k]),
@@ -156,7 +165,7 @@ class PredictionBatch:
                           outside_calibration=float(self.outside_calibration[k]), **wheels)
 
     @classmethod
-    def of_prediction(cls, prediction):
+    def of_prediction(cls, prediction: Prediction) -> PredictionBatch:
         """One :class:`Prediction` as a batch of one row (views; not a restart)."""
         p = prediction
         wheels = {field: np.asarray(getattr(p, field))[None] for field in WHEEL_FIELDS}
@@ -184,7 +193,7 @@ class ModelObserver:
     settings : FdiSettings
     """
 
-    def __init__(self, model, settings):
+    def __init__(self, model: PlatformModel, settings: FdiSettings) -> None:
         self.model = model
         self.settings = settings
         self.signs = model.kinematics.drive_signs
@@ -246,7 +255,7 @@ class ModelObserver:
         return tuple(m[inverse] for m in stacked)
 
     def _coulomb(self, velocity):
-        """(Coulomb torque the motors feel, Coulomb level, unseen friction) [N·m] at wheel speeds
+        """(Coulomb torque the motors feel, Coulomb level, unseen friction (a size, >= 0)) [N·m] at wheel speeds
         ``velocity``: with the contact law (model/dynamics.py) the level is the torque as if the
         contacts only rolled, and a wheel whose rolling share is below ``contact_share_floor`` (the
         lowest share seen turning in calibration) may need up to the level times the shortfall
@@ -260,10 +269,16 @@ class ModelObserver:
             return zeros, zeros, zeros
         dyn = self.model.dynamics
         level = dyn.coulomb_level(velocity)
+        # A roller that glides (its contact moving along the roller's free direction) passes up
+        # to the Coulomb level of that glide to its wheel, whether the wheel turns or stands:
+        # neither the wheel's own friction law nor the contact law holds it, and it grows with
+        # the floor and the wheel's load, which calibration saw at one value each.
+        glide = np.abs(dyn.coulomb_level(dyn.kinematics.roller_slide(velocity)))
         if not dyn.contact_law:
-            return level, level, np.zeros_like(level)
+            return level, level, glide
         share = dyn.rolling_shares(velocity)
-        return level * share, level, level * np.maximum(0.0, self.settings.contact_share_floor - share)
+        return (level * share, level,
+                glide + np.abs(level) * np.maximum(0.0, self.settings.contact_share_floor - share))
 
     def _speed_extrapolation(self, mean_speed):
         """Friction [N·m] (..., n) the model may miss where the base drives faster or slower than
@@ -298,8 +313,12 @@ class ModelObserver:
             b1 = np.vstack([gamma * (gain_p + gain_i * period), period * eye])
             c1 = np.vstack([-gamma, np.zeros((n, n))])
             a, b, c = np.eye(2 * n), np.zeros((2 * n, n)), np.zeros((2 * n, n))
-            for _ in range(steps):
-                a, b, c = a1 @ a, a1 @ b + b1, a1 @ c + c1
+            # An unstable loop (gains far off: a prior's, or a long gap's many periods) overflows
+            # here; a map that is not finite makes every row it advances saturated, stepped one
+            # period at a time (:meth:`_saturated`), so the overflow is moot.
+            with np.errstate(over='ignore', invalid='ignore'):
+                for _ in range(steps):
+                    a, b, c = a1 @ a, a1 @ b + b1, a1 @ c + c1
             self._loop_cache[steps] = (a, b, c)
         return self._loop_cache[steps]
 
@@ -326,7 +345,7 @@ class ModelObserver:
         return np.clip((current - self.kp * error) / self.ki, -self._integral_limit, self._integral_limit)
 
     # ------------------------------------------------------------------ commands
-    def command(self, sample):
+    def command(self, sample: CommandSample) -> None:
         """Take a /wheel_commands sample (:class:`~youbot_fdi.samples.CommandSample`)."""
         known = self._known_commands
         keep = max(len(known) + 1 - MAX_PENDING_COMMANDS, 0)
@@ -372,7 +391,7 @@ class ModelObserver:
         return velocity_mode | expired, np.where(expired[:, None], 0.0, values)
 
     # ------------------------------------------------------------------ state
-    def reset(self):
+    def reset(self) -> None:
         """Forget the state (after a gap in the data)."""
         self._last = None
 
@@ -547,7 +566,7 @@ class ModelObserver:
         return np.exp(-step / self.settings.load_time_constant)
 
     # ------------------------------------------------------------------ the update
-    def update(self, sample):
+    def update(self, sample: JointSample) -> Prediction | None:
         """The :class:`Prediction` for one /joint_states sample
         (:class:`~youbot_fdi.samples.JointSample`), or None when it (re)starts the observer (the
         first sample, or after a gap or a stamp going backwards or repeated): :meth:`update_batch`
@@ -555,7 +574,8 @@ class ModelObserver:
         batch = self.update_batch(JointBatch.of_sample(sample))
         return None if batch.restart[0] else batch.prediction(0)
 
-    def update_batch(self, joints, commands=None, commands_before=None):
+    def update_batch(self, joints: JointBatch, commands: CommandBatch | None = None,
+                     commands_before: np.ndarray | None = None) -> PredictionBatch:
         """The predictions of a block of /joint_states samples
         (:class:`~youbot_fdi.samples.JointBatch`), with the commands that arrived among them
         (``commands_before[k]`` of ``commands`` came before sample k; see

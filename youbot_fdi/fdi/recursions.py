@@ -3,15 +3,17 @@
 Each function equals its one-sample-at-a-time loop up to floating-point rounding; for a block of
 one sample it is that loop.
 """
+from __future__ import annotations
+
 import numpy as np
 
 
-def matvec(matrices, vectors):
+def matvec(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """``matrices @ vectors`` row by row: (N, d, m) with (N, m) -> (N, d)."""
     return np.matmul(matrices, vectors[..., None])[..., 0]
 
 
-def affine_recursion(a, b, x0):
+def affine_recursion(a: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """States of ``x_k = a_k x_{k-1} + b_k`` for k = 0..N-1 from ``x_{-1} = x0``.
 
     a : (N, d, d); b : (N, d); x0 : (d,). Returns (N, d). A prefix scan (Hillis-Steele): log2(N)
@@ -31,7 +33,7 @@ def affine_recursion(a, b, x0):
     return matvec(a, np.broadcast_to(x0, b.shape)) + b
 
 
-def scalar_recursion(a, b, x0):
+def scalar_recursion(a: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """States of ``x_k = a_k x_{k-1} + b_k`` element by element: a (N,) (one factor per row) or
     (N, d), b (N, d), x0 (d,); returns (N, d). Exponential smoothing with a varying step, as a
     prefix scan."""
@@ -53,7 +55,7 @@ def scalar_recursion(a, b, x0):
     return a * x0 + b
 
 
-def nan_median(values):
+def nan_median(values: np.ndarray) -> np.ndarray:
     """The median over the last axis with NaN left out (NaN where every value is), shape
     ``values.shape[:-1]``: ``np.nanmedian(values, axis=-1)`` without its masked-array machinery,
     which costs a live sample more than the rest of the observer."""
@@ -66,7 +68,7 @@ def nan_median(values):
     return np.where(count > 0, (low + high) / 2.0, np.nan).reshape(values.shape[:-1])
 
 
-def run_lengths(flags, carry, restart=None):
+def run_lengths(flags: np.ndarray, carry: np.ndarray, restart: np.ndarray | None = None) -> np.ndarray:
     """Consecutive True ``flags`` (N, n) ending at each row, continuing ``carry`` (n,) from before
     the block; a ``restart`` row (N,) bool starts over from zero."""
     flags = np.asarray(flags, dtype=bool)
@@ -80,7 +82,7 @@ def run_lengths(flags, carry, restart=None):
     return count - reset + np.where(since_block, carry, 0)
 
 
-def last_true_value(flags, values, initial):
+def last_true_value(flags: np.ndarray, values: np.ndarray, initial: float | np.ndarray) -> np.ndarray:
     """For each row, ``values`` (N,) at the latest row at or before it where ``flags`` (N,) or
     (N, n) holds (column by column), else ``initial`` (scalar, or (n,))."""
     flags = np.asarray(flags, dtype=bool)
@@ -92,7 +94,7 @@ def last_true_value(flags, values, initial):
     return np.where(index >= 0, values[np.maximum(index, 0)], initial)
 
 
-def cusum(steps, g0):
+def cusum(steps: np.ndarray, g0: np.ndarray) -> np.ndarray:
     """States of the CUSUM ``g_k = max(0, g_{k-1} + x_k)`` over rows of ``steps`` x (N, ...)
     from ``g_{-1} = g0`` (...); returns (N, ...). In closed form, ``g_k = S_k - min(-g_{-1},
     min_{j<=k} S_j)`` with S the running sum of x."""
@@ -102,7 +104,7 @@ def cusum(steps, g0):
     return total - np.minimum(-g0, np.minimum.accumulate(total, axis=0))
 
 
-def bounded_cusum(steps, g0, ceiling):
+def bounded_cusum(steps: np.ndarray, g0: np.ndarray, ceiling: float) -> np.ndarray:
     """States of the CUSUM held below a ceiling, ``g_k = min(ceiling, max(0, g_{k-1} + x_k))``,
     over rows of ``steps`` x (N, ...) from ``g_{-1} = g0`` (...); returns (N, ...).
 
@@ -131,12 +133,13 @@ class ExponentialAverage:
     gain g_k = 1 - exp(-dt / time constant) advances it by an interval; g_k = 0 leaves it as it is.
     """
 
-    def __init__(self, size):
+    def __init__(self, size: int) -> None:
         self.value = np.zeros(size)
         self.weight = np.zeros(size)  # [-], 0: no sample yet
         self._after = None  # (average, weight) after each row of the last advance, for rewind
 
-    def advance(self, gain, values, keep=1.0):
+    def advance(self, gain: np.ndarray, values: np.ndarray,
+                keep: float | np.ndarray = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Take rows of ``values`` (N, n) with their gains (N, n) in [0, 1]; ``keep`` (N, n) 0
         forgets the memory before a row. Returns the average and its weight before each row, both
         (N, n)."""
@@ -152,7 +155,7 @@ class ExponentialAverage:
         self.value, self.weight = average[-1], weight[-1]
         return before
 
-    def rewind(self, row):
+    def rewind(self, row: int) -> None:
         """Go back to the state after ``row`` of the last :meth:`advance`."""
         average, weight = self._after
         self.value, self.weight = average[row], weight[row]

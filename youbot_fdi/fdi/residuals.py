@@ -34,8 +34,11 @@ together (the replay, the fused ``observer`` node). The evaluator has one implem
 ``update_batch`` for a block of samples (the replay); its ``update`` (the live nodes) is a batch of
 one. The observer steps one sample where a block takes a prefix scan (fdi/observer.py).
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -46,6 +49,12 @@ from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import last_true_value, run_lengths
 from youbot_fdi.samples import JointBatch
 from youbot_fdi.naming import wheel_suffix
+
+if TYPE_CHECKING:  # names in annotations only
+    from collections.abc import Iterable, Sequence
+    from youbot_fdi.fdi.learned import TorqueCorrection
+    from youbot_fdi.fdi.observer import Prediction
+    from youbot_fdi.samples import CommandBatch, CommandSample, JointSample
 
 FAMILIES = ('torque', 'observer', 'command', 'encoder')
 #: Signals a frame carries besides its residuals: (label prefix, attribute).
@@ -75,12 +84,12 @@ FROZEN_MIN_TICKS = 2.0
 FROZEN_NOISE_SIGMAS = 3.0
 
 
-def bound_weights(settings, family):
+def bound_weights(settings: FdiSettings, family: str) -> np.ndarray:
     """The weights of ``family``'s bound features (:data:`BOUND_TERMS`) in ``settings``, (k,)."""
     return np.array([getattr(settings, name) for name in BOUND_TERMS[family]])
 
 
-def feature_range(settings, family):
+def feature_range(settings: FdiSettings, family: str) -> np.ndarray:
     """The range (k,) of ``family``'s bound features calibration covered (inf: no limit); a
     ConfigError naming the setting when its length does not fit."""
     values = np.asarray(getattr(settings, f'{family}_feature_range'), dtype=float).reshape(-1)
@@ -96,7 +105,7 @@ def feature_range(settings, family):
 PRIOR_SETTINGS = FdiSettings()
 
 
-def columns(*values):
+def columns(*values: float | np.ndarray) -> np.ndarray:
     """The arrays (or scalars) ``values``, broadcast together, as the columns of one array
     (..., k): a bound's features (cheaper than stacking broadcast copies)."""
     shapes = [np.shape(v) for v in values]
@@ -108,7 +117,7 @@ def columns(*values):
     return out
 
 
-def scores(values, bounds):
+def scores(values: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """|r| / u; 0 where a residual cannot be computed (NaN: no effort recorded), so it is silent."""
     z = np.abs(values) / bounds
     z[np.isnan(z)] = 0.0
@@ -139,11 +148,11 @@ class ResidualFrame:
     #: a steady bias cancels (None: the bound)
     torque_scale: np.ndarray = None
 
-    def names(self, wheel_names):
+    def names(self, wheel_names: Sequence[str]) -> list[str]:
         """Residual names in family-major order, e.g. ``torque_fl``."""
         return [f'{family}_{wheel_suffix(w)}' for family in FAMILIES for w in wheel_names]
 
-    def flat(self):
+    def flat(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, bounds) as flat arrays in :meth:`names` order."""
         return (np.concatenate([self.values[f] for f in FAMILIES]),
                 np.concatenate([self.bounds[f] for f in FAMILIES]))
@@ -153,7 +162,7 @@ class ResidualFrame:
         return scores(np.stack([self.values[f] for f in FAMILIES]),
                       np.stack([self.bounds[f] for f in FAMILIES]))
 
-    def to_labelled(self, wheel_names):
+    def to_labelled(self, wheel_names: Sequence[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
         """(labels, values, bounds): the residuals, then the signals the decision needs.
 
         The residuals carry their bounds; the signals (``speed_<w>``, ``torque_<w>``,
@@ -175,7 +184,8 @@ class ResidualFrame:
                 np.concatenate([bounds, np.full(len(extra), np.nan)]))
 
     @classmethod
-    def from_labelled(cls, stamp, labels, values, bounds, wheel_names):
+    def from_labelled(cls, stamp: float, labels: Sequence[str], values: np.ndarray,
+                      bounds: np.ndarray, wheel_names: Sequence[str]) -> ResidualFrame:
         """Rebuild a frame from :meth:`to_labelled` output (matched by label)."""
         index = {label: i for i, label in enumerate(labels)}
         suffixes = [wheel_suffix(w) for w in wheel_names]
@@ -243,7 +253,7 @@ class ResidualBatch:
     def __len__(self):
         return len(self.stamp)
 
-    def frame(self, k):
+    def frame(self, k: int) -> ResidualFrame:
         """Row ``k`` as a :class:`ResidualFrame`."""
         return ResidualFrame(
             stamp=float(self.stamp[k]), values={f: v[k] for f, v in self.values.items()},
@@ -255,7 +265,7 @@ class ResidualBatch:
             load_factor=float(self.load_factor[k]),
             outside_calibration=float(self.outside_calibration[k]))
 
-    def select(self, rows):
+    def select(self, rows: np.ndarray | slice) -> ResidualBatch:
         """The rows ``rows`` (index array, mask or slice) as a batch."""
         pick = {f: getattr(self, f)[rows] for f in ROW_ARRAYS}
         return ResidualBatch(values={f: v[rows] for f, v in self.values.items()},
@@ -268,7 +278,7 @@ class ResidualBatch:
                       np.stack([self.bounds[f] for f in FAMILIES], axis=1))
 
     @classmethod
-    def of_frames(cls, frames):
+    def of_frames(cls, frames: Iterable[ResidualFrame]) -> ResidualBatch:
         """The :class:`ResidualFrame` s ``frames`` as one batch (a frame without a
         ``torque_scale`` has its torque bound as one; no command-path speed: NaN)."""
         frames = list(frames)
@@ -292,7 +302,7 @@ class ResidualBatch:
                    torque_scale=rows(lambda f: f.bounds['torque'] if f.torque_scale is None else f.torque_scale))
 
     @classmethod
-    def concatenate(cls, batches):
+    def concatenate(cls, batches: Iterable[ResidualBatch]) -> ResidualBatch:
         """One batch of several, in order."""
         batches = list(batches)
         join = {f: np.concatenate([getattr(b, f) for b in batches]) for f in ROW_ARRAYS}
@@ -347,11 +357,11 @@ class ResidualEvaluator:
         self.counters = {'unpaired': 0}
 
     @property
-    def last_stamp(self):
+    def last_stamp(self) -> float | None:
         """Stamp of the last sample taken [s], None before the first."""
         return None if self._last is None else self._last[0]
 
-    def restart(self, sample):
+    def restart(self, sample: JointSample) -> None:
         """(Re)start at ``sample`` (:class:`~youbot_fdi.samples.JointSample`): the one the
         observer restarted at, which has no prediction."""
         position, velocity, torque = (self.signs * a for a in (sample.position, sample.velocity,
@@ -366,7 +376,7 @@ class ResidualEvaluator:
         self._fresh = np.full(self.n, sample.stamp)
 
     # ------------------------------------------------------------------ missing readings
-    def silence(self, stamps, answered):
+    def silence(self, stamps: np.ndarray, answered: np.ndarray) -> np.ndarray:
         """Time [s] (N, n) since each wheel's last reading at each of ``stamps`` (N,), from which
         wheels ``answered`` (N, n) bool in each row; continues (and leaves) the state."""
         stamps = np.asarray(stamps, dtype=float)
@@ -376,7 +386,7 @@ class ResidualEvaluator:
         self._fresh = fresh[-1]
         return stamps[:, None] - fresh
 
-    def missing_batch(self, joints):
+    def missing_batch(self, joints: JointBatch) -> ResidualBatch:
         """Frames for rows of ``joints`` (:class:`~youbot_fdi.samples.JointBatch`) in which some
         wheels have no reading (NaN from the driver: their module did not answer the cycle):
         missing data. Nothing is computed from them (every residual NaN, scored 0: no evidence),
@@ -400,7 +410,7 @@ class ResidualEvaluator:
             load_factor=np.full(rows, np.nan), command_speed=nan,
             outside_calibration=np.zeros(rows), torque_scale=np.ones((rows, n)), features=features)
 
-    def missing(self, sample):
+    def missing(self, sample: JointSample) -> ResidualFrame:
         """:meth:`missing_batch` for one sample (:class:`~youbot_fdi.samples.JointSample`): a
         :class:`ResidualFrame`."""
         return self.missing_batch(JointBatch.of_sample(sample)).frame(0)
@@ -408,7 +418,7 @@ class ResidualEvaluator:
     # ------------------------------------------------------------------ the residual formulas
     # Shapes (n,) for one sample or (N, n) for a block; ``step`` is dt [s] (a scalar, or (N, 1)).
     # Each returns the residual and its bound's features (..., n, k) (:data:`BOUND_TERMS`).
-    def bound(self, family, features):
+    def bound(self, family: str, features: np.ndarray) -> np.ndarray:
         """The bound [residual units] of ``family`` from its features (..., n, k): the learned
         weights within the range calibration covered; a feature's excess beyond it weighed with
         the larger of its learned and its default weight (honest extrapolation)."""
@@ -418,7 +428,7 @@ class ResidualEvaluator:
             bound = bound + (features - inside) @ self._beyond[family]
         return bound
 
-    def beyond_calibration(self, features):
+    def beyond_calibration(self, features: dict[str, np.ndarray]) -> np.ndarray:
         """Wheels (..., n) bool whose bound features ({family: (..., n, k)}) leave the range
         calibration covered in any family by more than ``calibration_range_margin`` of it (the
         WARN: the bounds widen from the range on)."""
@@ -484,7 +494,7 @@ class ResidualEvaluator:
         return columns(1.0, np.abs(predicted))
 
     # ------------------------------------------------------------------ the update
-    def update(self, sample, prediction):
+    def update(self, sample: JointSample, prediction: Prediction) -> ResidualFrame | None:
         """The :class:`ResidualFrame` of one sample (:class:`~youbot_fdi.samples.JointSample`)
         and its :class:`~youbot_fdi.fdi.observer.Prediction`, or None (restarted: the prediction
         does not start at the last sample taken): :meth:`update_batch` of a batch of one."""
@@ -495,7 +505,7 @@ class ResidualEvaluator:
         return self.update_batch(JointBatch.of_sample(sample),
                                  PredictionBatch.of_prediction(prediction)).frame(0)
 
-    def update_batch(self, joints, predictions):
+    def update_batch(self, joints: JointBatch, predictions: PredictionBatch) -> ResidualBatch:
         """Residuals of a block of samples (:class:`~youbot_fdi.samples.JointBatch`) and their
         predictions (:class:`~youbot_fdi.fdi.observer.PredictionBatch`, one row per sample, from
         :meth:`ModelObserver.update_batch` on the same block): a :class:`ResidualBatch` of every
@@ -584,7 +594,7 @@ class ResidualSpread:
         self._sums = dict.fromkeys(FAMILIES, 0.0)
         self._counts = dict.fromkeys(FAMILIES, 0)
 
-    def add(self, batch):
+    def add(self, batch: ResidualBatch) -> ResidualSpread:
         """Add a :class:`ResidualBatch`; returns self."""
         for family, values in batch.values.items():
             finite = values[np.isfinite(values)]
@@ -592,14 +602,14 @@ class ResidualSpread:
             self._counts[family] += finite.size
         return self
 
-    def merge(self, other):
+    def merge(self, other: ResidualSpread) -> ResidualSpread:
         """Pool another spread into this one; returns self."""
         for family in FAMILIES:
             self._sums[family] += other._sums[family]
             self._counts[family] += other._counts[family]
         return self
 
-    def rms(self):
+    def rms(self) -> dict[str, float]:
         """{family: RMS}, NaN for a family without a finite value."""
         return {f: math.sqrt(self._sums[f] / self._counts[f]) if self._counts[f] else math.nan
                 for f in FAMILIES}
@@ -625,19 +635,19 @@ class ResidualGenerator:
         self.last_prediction = None
 
     @property
-    def correction(self):
+    def correction(self) -> TorqueCorrection | None:
         """The learned torque correction in use, None: physics only."""
         return self.observer.correction
 
-    def command(self, sample):
+    def command(self, sample: CommandSample) -> None:
         """Take a /wheel_commands sample (:class:`~youbot_fdi.samples.CommandSample`)."""
         self.observer.command(sample)
 
-    def reset(self):
+    def reset(self) -> None:
         """Forget the state (after a gap in the data)."""
         self.observer.reset()
 
-    def update(self, sample):
+    def update(self, sample: JointSample) -> ResidualFrame | None:
         """Residuals for one /joint_states sample (:class:`~youbot_fdi.samples.JointSample`):
         a :class:`ResidualFrame`, or None (first sample, or after a gap/reorder). Also
         :attr:`last_prediction`, the observer's :class:`~youbot_fdi.fdi.observer.Prediction`."""
@@ -650,7 +660,8 @@ class ResidualGenerator:
             return None
         return self.evaluator.update(sample, prediction)
 
-    def update_batch(self, joints, commands=None, commands_before=None):
+    def update_batch(self, joints: JointBatch, commands: CommandBatch | None = None,
+                     commands_before: np.ndarray | None = None) -> ResidualBatch:
         """Residuals of a block of /joint_states samples (:class:`~youbot_fdi.samples.JointBatch`),
         with the commands that arrived among them (``commands_before[k]`` of ``commands`` came
         before sample k; see :class:`~youbot_fdi.samples.SampleChunk`).
