@@ -26,7 +26,7 @@ Inputs are what the robot publishes (CONTRACT.md, driver convention): /joint_sta
 The residual generator (:class:`~youbot_fdi.fdi.residuals.ResidualEvaluator`) turns a sample and
 its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerator` runs both.
 :meth:`ModelObserver.update_batch` computes a block of samples at once (the replay);
-:meth:`ModelObserver.update` is the same computation for one sample (the live node).
+:meth:`ModelObserver.update` is that computation on a batch of one (the live node).
 """
 from __future__ import annotations
 
@@ -505,12 +505,12 @@ class ModelObserver:
         return linear
 
     # ------------------------------------------------------------------ the model's torque
-    # Shapes (n,) for one sample or (N, n) for a block.
+    # Rows (N, n) (a live sample is one).
     def _explained(self, velocity, prev_velocity, phi, gamma_inv, step, torque, prev_torque):
         """An :class:`ExplainedTorque` (explained torque, the wheel's friction level, Coulomb torque,
         unseen friction, wheels outside the learned correction's calibration (:func:`wheel_mask`,
         0 without one)) over one
-        interval of ``step`` [s] (a scalar, or (N, 1)) between measured torques ``prev_torque``
+        interval of ``step`` [s] (N, 1) between measured torques ``prev_torque``
         and ``torque`` (either sign: only their size is used): the torque the exactly discretised dynamics
         need for the measured speed change, with the learned correction (if any): its friction part
         in the explained and Coulomb torques, its inertial part in the explained torque only; the

@@ -30,9 +30,8 @@ Each residual comes with its bound u (see :mod:`youbot_fdi.fdi.settings`).
 
 :class:`ResidualEvaluator` turns a sample and its prediction into residuals (the
 ``residual_generator`` node); :class:`ResidualGenerator` runs the observer and the evaluator
-together (the replay, the fused ``observer`` node). The evaluator has one implementation,
-``update_batch`` for a block of samples (the replay); its ``update`` (the live nodes) is a batch of
-one. The observer steps one sample where a block takes a prefix scan (fdi/observer.py).
+together (the replay, the fused ``observer`` node). Each has one implementation, ``update_batch``
+for a block of samples (the replay); ``update`` (the live nodes) is a batch of one.
 """
 from __future__ import annotations
 
@@ -416,7 +415,7 @@ class ResidualEvaluator:
         return self.missing_batch(JointBatch.of_sample(sample)).frame(0)
 
     # ------------------------------------------------------------------ the residual formulas
-    # Shapes (n,) for one sample or (N, n) for a block; ``step`` is dt [s] (a scalar, or (N, 1)).
+    # Rows (N, n) (a live sample is one); ``step`` is dt [s] (N, 1).
     # Each returns the residual and its bound's features (..., n, k) (:data:`BOUND_TERMS`).
     def bound(self, family: str, features: np.ndarray) -> np.ndarray:
         """The bound [residual units] of ``family`` from its features (..., n, k): the learned
@@ -654,11 +653,14 @@ class ResidualGenerator:
         if not sample.complete():
             self.last_prediction = None
             return self.evaluator.missing(sample)  # some wheels without a reading
-        self.last_prediction = prediction = self.observer.update(sample)
-        if prediction is None:
+        joints = JointBatch.of_sample(sample)  # a batch of one, handed on as the observer gives it
+        predictions = self.observer.update_batch(joints)
+        if predictions.restart[0]:
+            self.last_prediction = None
             self.evaluator.restart(sample)
             return None
-        return self.evaluator.update(sample, prediction)
+        self.last_prediction = predictions.prediction(0)
+        return self.evaluator.update_batch(joints, predictions).frame(0)
 
     def update_batch(self, joints: JointBatch, commands: CommandBatch | None = None,
                      commands_before: np.ndarray | None = None) -> ResidualBatch:
