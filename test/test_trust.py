@@ -148,8 +148,34 @@ def test_the_command_path_takes_the_measured_state_at_a_current_calibration_neve
     held = model.kinematics.drive_signs * (speeds + 0.1)  # the sample, kinematic convention
     np.testing.assert_allclose(prediction.from_commands, held)
     assert prediction.outside_calibration == 0.0  # within the margin: held, not yet a WARN
+    assert prediction.resynced  # it started again from a guessed state
     low = observer.update(JointSample(0.03, np.zeros(4), speeds + 0.2, np.full(4, 0.1)))
-    assert np.all(np.abs(low.from_commands - held) > 1e-6)  # predicting again, from that state
+    assert low.resynced  # and the row after (its integral is the loop's again)
+    later = observer.update(JointSample(0.04, np.zeros(4), speeds + 0.3, np.full(4, 0.1)))
+    assert np.all(np.abs(later.from_commands - held) > 1e-6) and not later.resynced  # predicting
+
+
+def test_the_command_path_settles_after_it_took_the_measured_state(model):
+    """Where the command path took the measured state (a current calibration never saw), its
+    prediction starts from a guessed integral, as at a start: the command residual is not
+    judged for ``startup_time`` after the last such row, and is again after it."""
+    from youbot_fdi.fdi.residuals import ResidualGenerator
+    from youbot_fdi.samples import CommandSample, JointSample
+    settings = replace(FdiSettings(), calibrated_effort=1.0, startup_time=0.2)
+    generator = ResidualGenerator(model, settings)
+    generator.command(CommandSample(0.0, 'velocity', np.full(4, 5.0)))
+    signs = model.kinematics.drive_signs
+    judged = {}
+    for k in range(1, 60):
+        stamp = 0.01 * k
+        effort = 2.0 if k == 30 else 0.1  # one sample at twice calibration's largest torque
+        frame = generator.update(JointSample(stamp, np.zeros(4), signs * 1.0, signs * effort))
+        if frame is not None:
+            judged[round(stamp, 2)] = bool(np.any(frame.values['command'] != 0.0))
+    assert judged[0.29] and not judged[0.3] and not judged[0.31]  # the jump and the row after
+    # settling: startup_time after the row after the jump (0.31 s), judged again from 0.51 s
+    assert not any(judged[round(0.31 + 0.01 * j, 2)] for j in range(20))
+    assert judged[0.51] and judged[0.59]
 
 
 def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):
@@ -225,3 +251,35 @@ def test_evidence_that_drains_holds_no_new_alarm(model):
     # after 7 samples the first is under half the threshold (no longer up), the second still over
     assert 4 * 2.0 - 7 * 1.0 < 0.5 * threshold and 4 * 2.0 - 8 * 0.5 >= threshold
     assert n == 4 and events and events[0] == (12, model.wheel_names[1])
+
+
+def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(model):
+    """A wheel under its firmware's proportional gain k_p k_t answers a torque d it was not told
+    of (a floor's drag) with the speed error d / (k_p k_t) (1 - exp(-t / tau)), tau = M_ii /
+    (k_p k_t): the command bound allows that much of the torque residual the wheel carries, the
+    same in one block and row by row, and from nothing again after a restart."""
+    evaluator = ResidualEvaluator(model, FdiSettings())
+    tau = evaluator.loop_time_constant
+    stiffness = model.firmware.velocity_kp * model.drive.torque_per_amp
+    np.testing.assert_allclose(tau, np.diag(model.dynamics.mass_matrix) / stiffness)
+    assert evaluator.loop_compliance == pytest.approx(1.0 / stiffness)
+    dt, rows, d = 0.01, 30, np.array([0.2, -0.1, 0.0, np.nan])  # [s], [N·m]; NaN: effort unknown
+    step = np.full((rows, 1), dt)
+    carried = evaluator._loop_disturbance(np.tile(d, (rows, 1)), step, np.zeros(rows, dtype=bool))
+    t = dt * np.arange(1, rows + 1)[:, None]
+    expected = np.where(np.isnan(d), 0.0, d) * -np.expm1(-t / tau)
+    np.testing.assert_allclose(carried, expected, rtol=1e-12, atol=1e-15)
+    row_by_row = ResidualEvaluator(model, FdiSettings())
+    one = np.concatenate([row_by_row._loop_disturbance(d[None], step[:1], np.zeros(1, dtype=bool))
+                          for _ in range(rows)])
+    np.testing.assert_allclose(one, carried, rtol=1e-12)
+    restarted = evaluator._loop_disturbance(d[None], step[:1], np.ones(1, dtype=bool))
+    assert np.all(restarted == 0.0)
+    # the bound: the larger of the unseen friction and the carried torque, through the compliance
+    speed, target = np.full((1, 4), 2.0), np.full((1, 4), 2.0)
+    args = (speed, np.zeros((1, 4)), speed, speed, target, target, np.ones((1, 1), dtype=bool),
+            np.zeros((1, 1), dtype=bool))
+    _, plain, *_ = evaluator._command_terms(*args, np.zeros((1, 4)), np.zeros((1, 4)), step[:1])
+    _, allowed, *_ = evaluator._command_terms(*args, np.full((1, 4), 0.05), carried[-1:], step[:1])
+    extra = np.maximum(0.05, np.abs(carried[-1])) / stiffness
+    np.testing.assert_allclose(allowed - plain, extra[None])

@@ -65,7 +65,7 @@ MAX_PENDING_COMMANDS = 256
 WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
                 'commanded_before', 'explained', 'friction', 'unseen_friction')
 #: Scalar fields of a prediction, after the per-wheel ones.
-SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor', 'outside_calibration')
+SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor', 'outside_calibration', 'resynced')
 
 
 def signed_torque(torque: np.ndarray, reference: np.ndarray, signed_effort: bool) -> np.ndarray:
@@ -94,12 +94,15 @@ class Prediction:
     #: wheels whose operating point the learned correction's calibration did not cover (bit w for
     #: wheel w, youbot_fdi.fdi.learned.wheel_mask): physics only for them; 0 without a correction
     outside_calibration: float = 0.0
+    #: the command path took the measured state at this sample (a current calibration never saw:
+    #: its prediction starts again from a guessed integral, and settles as after a start)
+    resynced: bool = False
 
     @staticmethod
     def labels(wheel_names: Sequence[str]) -> list[str]:
         """The labels of :meth:`to_vector`: ``<field>_<w>`` for the per-wheel fields
-        (:data:`WHEEL_FIELDS`), then ``since``, ``velocity_mode`` (1/0), ``load_factor`` and
-        ``outside_calibration``."""
+        (:data:`WHEEL_FIELDS`), then ``since``, ``velocity_mode`` (1/0), ``load_factor``,
+        ``outside_calibration`` and ``resynced`` (1/0)."""
         suffixes = [wheel_suffix(w) for w in wheel_names]
         return [f'{field}_{s}' for field in WHEEL_FIELDS for s in suffixes] + list(SCALAR_FIELDS)
 
@@ -108,7 +111,7 @@ class Prediction:
         drive signs). :meth:`from_labelled` inverts it exactly (a sign flip is exact)."""
         return np.concatenate([signs * getattr(self, field) for field in WHEEL_FIELDS]
                               + [[self.since, float(self.velocity_mode), self.load_factor,
-                                  self.outside_calibration]])
+                                  self.outside_calibration, float(self.resynced)]])
 
     @classmethod
     def from_labelled(cls, stamp: float, labels: Sequence[str], values: np.ndarray,
@@ -127,9 +130,10 @@ class Prediction:
             picked = np.asarray(values, dtype=float)[[index[label] for label in wanted]]
         n = len(wheel_names)
         wheels = {field: signs * picked[j * n:(j + 1) * n] for j, field in enumerate(WHEEL_FIELDS)}
-        since, mode, load, outside = picked[len(WHEEL_FIELDS) * n:]
+        since, mode, load, outside, resynced = picked[len(WHEEL_FIELDS) * n:]
         return cls(stamp=stamp, since=float(since), velocity_mode=bool(mode > 0.5),
-                   load_factor=float(load), outside_calibration=float(outside), **wheels)
+                   load_factor=float(load), outside_calibration=float(outside),
+                   resynced=bool(resynced > 0.5), **wheels)
 
 
 @dataclass(frozen=True)
@@ -152,6 +156,7 @@ class PredictionBatch:
     unseen_friction: np.ndarray
     load_factor: np.ndarray
     outside_calibration: np.ndarray  # (N,) as in Prediction
+    resynced: np.ndarray  # (N,) bool, as in Prediction
 
     def __len__(self):
         return len(self.stamp)
@@ -162,7 +167,8 @@ class PredictionBatch:
         return Prediction(stamp=float(self.stamp[k]), since=float(self.since[k]),
                           velocity_mode=bool(self.velocity_mode[k]),
                           load_factor=float(self.load_factor[k]),
-                          outside_calibration=float(self.outside_calibration[k]), **wheels)
+                          outside_calibration=float(self.outside_calibration[k]),
+                          resynced=bool(self.resynced[k]), **wheels)
 
     @classmethod
     def of_prediction(cls, prediction: Prediction) -> PredictionBatch:
@@ -171,7 +177,8 @@ class PredictionBatch:
         wheels = {field: np.asarray(getattr(p, field))[None] for field in WHEEL_FIELDS}
         return cls(stamp=np.array([p.stamp]), since=np.array([p.since]), restart=np.zeros(1, dtype=bool),
                    velocity_mode=np.array([bool(p.velocity_mode)]), load_factor=np.array([p.load_factor]),
-                   outside_calibration=np.array([float(p.outside_calibration)]), **wheels)
+                   outside_calibration=np.array([float(p.outside_calibration)]),
+                   resynced=np.array([bool(p.resynced)]), **wheels)
 
 
 class ExplainedTorque(NamedTuple):
@@ -589,7 +596,8 @@ class ModelObserver:
         if rows == 0:
             empty = np.empty((0, n))
             return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 5,
-                                   velocity_mode, empty, empty, empty, np.empty(0), np.empty(0))
+                                   velocity_mode, empty, empty, empty, np.empty(0), np.empty(0),
+                                   np.empty(0, dtype=bool))
         first = self._last is None
         if first:
             self._restart(stamp[0], velocity[0], torque[0], velocity_mode[0], target[0])
@@ -652,7 +660,8 @@ class ModelObserver:
             commands_before=np.concatenate([command_before[None, :n], speed[:-1]]),
             commanded=target, commanded_before=np.concatenate([self._last_target[None], target[:-1]]),
             velocity_mode=velocity_mode, explained=explained, friction=friction,
-            unseen_friction=unseen, load_factor=load, outside_calibration=outside)
+            unseen_friction=unseen, load_factor=load, outside_calibration=outside,
+            resynced=measured & ~restart)
         self._last = (stamp[-1], velocity[-1], torque[-1])
         self._observer, self._command_state = observer[-1], path[-1]
         self._load = (smoothed[-1], float(load[-1]))

@@ -45,7 +45,7 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.learned import wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.fdi.recursions import last_true_value, run_lengths
+from youbot_fdi.fdi.recursions import last_true_value, run_lengths, scalar_recursion
 from youbot_fdi.samples import JointBatch
 from youbot_fdi.naming import wheel_suffix
 
@@ -342,6 +342,10 @@ class ResidualEvaluator:
         #: [rad/s per N·m] (0 without a loop)
         stiffness = model.firmware.velocity_kp * drive.torque_per_amp
         self.loop_compliance = 1.0 / stiffness if stiffness > 0.0 else 0.0
+        #: how fast a wheel's speed answers a torque disturbance under that gain, its own share of
+        #: the inertia over the gain's stiffness, M_ii / (k_p k_t) (n,) [s] (0 without a loop)
+        self.loop_time_constant = np.diag(self.mass_matrix) * self.loop_compliance
+        self._disturbance = np.zeros(self.n)  # that disturbance, low-passed (n,) [N·m]
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
         self._calibrated = {family: bool(np.isfinite(r).any()) for family, r in self._ranges.items()}
@@ -373,6 +377,7 @@ class ResidualEvaluator:
                       signed_torque(torque, velocity, self.signed_effort))
         self._started = sample.stamp
         self._fresh = np.full(self.n, sample.stamp)
+        self._disturbance = np.zeros(self.n)
 
     # ------------------------------------------------------------------ missing readings
     def silence(self, stamps: np.ndarray, answered: np.ndarray) -> np.ndarray:
@@ -454,13 +459,15 @@ class ResidualEvaluator:
         return residual, features, allowance
 
     def _command_terms(self, velocity, torque, speed, before, target, previous_target, velocity_mode,
-                       settling, unseen, step):
+                       settling, unseen, disturbance, step):
         """(residual, bound) of the command family: ``speed`` predicted now, ``before`` at the
         previous sample, ``previous_target`` the command in force then; ``velocity_mode`` and
         ``settling`` broadcast against (…, n). In current mode a command may act up to
         ``command_delay`` later than predicted: that share of a step is allowed. In velocity mode
         the ``unseen`` friction [N·m] (observer.py) may slow the wheel by what the loop's
-        proportional gain leaves of it. Also the features of both bounds."""
+        proportional gain leaves of it, and so may the torque the wheel measurably carries beyond
+        the model, ``disturbance`` [N·m] (:meth:`_loop_disturbance`): the larger of the two is
+        allowed. Also the features of both bounds."""
         s = self.settings
         residual = np.where(settling, 0.0, np.where(velocity_mode, velocity - speed, torque - target))
         velocity_f = columns(1.0, np.abs(speed), np.maximum(np.abs(target - speed), np.abs(target - before)),
@@ -468,9 +475,27 @@ class ResidualEvaluator:
         effort_f = columns(1.0, np.abs(target))
         effort_u = (self.bound('effort', effort_f)
                     + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
-        velocity_u = self.bound('command', velocity_f) + np.abs(unseen) * self.loop_compliance
+        velocity_u = (self.bound('command', velocity_f)
+                      + np.maximum(np.abs(unseen), np.abs(disturbance)) * self.loop_compliance)
         bound = np.where(settling, 1.0, np.where(velocity_mode, velocity_u, effort_u))
         return residual, bound, velocity_f, effort_f
+
+    def _loop_disturbance(self, torque_residual, step, restart):
+        """The torque each wheel carries beyond the model (its torque residual ``torque_residual``
+        (N, n) [N·m], NaN: none known), low-passed with the loop's time constant
+        (:attr:`loop_time_constant`) over the intervals ``step`` (N, 1) [s], from 0 at the rows
+        that ``restart`` (N,); continues (and leaves) the state. Why: a wheel's firmware loop answers a torque it was not told of (a floor's or
+        a payload's drag, a roller dragged by the base) with a speed error; under its proportional
+        gain that error is the disturbance, low-passed with that time constant, times
+        :attr:`loop_compliance` (the integral only shrinks it), so the command path allows it. A
+        runaway carries no such torque: its wheel does what its current says."""
+        fresh = restart[:, None]
+        known = np.where(np.isfinite(torque_residual) & ~fresh, torque_residual, 0.0)
+        with np.errstate(divide='ignore'):
+            keep = np.where(fresh, 0.0, np.exp(-step / self.loop_time_constant))  # 0 s: no memory
+        smoothed = scalar_recursion(keep, (1.0 - keep) * known, self._disturbance)
+        self._disturbance = smoothed[-1]
+        return smoothed
 
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
         """(residual, features) of the encoder family."""
@@ -540,11 +565,15 @@ class ResidualEvaluator:
             torque, prev_torque, velocity, prev_velocity, p.explained, p.friction, p.unseen_friction,
             load, step)
         observer_f = self._observer_features(p.from_currents)
-        started = last_true_value(restart, stamp, self._started)
+        # The command path's prediction settles for startup_time after it started from a
+        # guessed state: a restart, or the measured state taken at a current calibration never
+        # saw (observer.py: the integral the measured current implies is only a guess where the
+        # current limit acts, and the loop winds up unseen).
+        started = last_true_value(restart | p.resynced, stamp, self._started)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
             p.velocity_mode[:, None], (stamp - started < s.startup_time)[:, None], load * p.unseen_friction,
-            step)
+            self._loop_disturbance(torque_r, step, restart), step)
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
                                                    velocity - prev_velocity, step)

@@ -56,7 +56,8 @@ class FdiSettings:
     effort_sigma: float = 0.02
     effort_fraction: float = 0.1
     command_timeout: float = 0.25  # the shim's watchdog: older commands mean zero speed [s]
-    startup_time: float = 0.5  # the command path is not judged while its prediction settles [s]
+    startup_time: float = 0.5  # the command path is not judged while its prediction settles (after a
+    # start, and after it took the measured state at a current calibration never saw) [s]
     # encoder_<w>: position increment minus speed * dt [rad]
     encoder_sigma: float = 0.002
     encoder_speed_fraction: float = 0.2
