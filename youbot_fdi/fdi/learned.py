@@ -200,6 +200,12 @@ def wheel_mask(seen):
     return np.logical_not(seen) @ 2.0 ** np.arange(np.shape(seen)[-1])
 
 
+def mask_wheels(mask, n):
+    """The wheels (..., n) bool of :func:`wheel_mask` values ``mask`` (...,)."""
+    bits = np.asarray(mask, dtype=np.int64)[..., None]
+    return (bits >> np.arange(n)) & 1 == 1
+
+
 def masked_wheels(mask, n):
     """The wheel indices of a :func:`wheel_mask` value."""
     bits = int(mask)

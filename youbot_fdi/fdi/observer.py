@@ -94,15 +94,17 @@ class Prediction:
     #: wheels whose operating point the learned correction's calibration did not cover (bit w for
     #: wheel w, youbot_fdi.fdi.learned.wheel_mask): physics only for them; 0 without a correction
     outside_calibration: float = 0.0
-    #: the command path took the measured state at this sample (a current calibration never saw:
-    #: its prediction starts again from a guessed integral, and settles as after a start)
-    resynced: bool = False
+    #: wheels whose current reached what calibration never saw at this sample or the one before
+    #: (bit w for wheel w, as ``outside_calibration``): the command path took the measured state,
+    #: and their integral is a guess where the current limit acts, so their prediction settles
+    #: again as after a start; 0: none
+    resynced: float = 0.0
 
     @staticmethod
     def labels(wheel_names: Sequence[str]) -> list[str]:
         """The labels of :meth:`to_vector`: ``<field>_<w>`` for the per-wheel fields
         (:data:`WHEEL_FIELDS`), then ``since``, ``velocity_mode`` (1/0), ``load_factor``,
-        ``outside_calibration`` and ``resynced`` (1/0)."""
+        ``outside_calibration`` and ``resynced`` (wheel bits)."""
         suffixes = [wheel_suffix(w) for w in wheel_names]
         return [f'{field}_{s}' for field in WHEEL_FIELDS for s in suffixes] + list(SCALAR_FIELDS)
 
@@ -111,7 +113,7 @@ class Prediction:
         drive signs). :meth:`from_labelled` inverts it exactly (a sign flip is exact)."""
         return np.concatenate([signs * getattr(self, field) for field in WHEEL_FIELDS]
                               + [[self.since, float(self.velocity_mode), self.load_factor,
-                                  self.outside_calibration, float(self.resynced)]])
+                                  self.outside_calibration, self.resynced]])
 
     @classmethod
     def from_labelled(cls, stamp: float, labels: Sequence[str], values: np.ndarray,
@@ -133,7 +135,7 @@ class Prediction:
         since, mode, load, outside, resynced = picked[len(WHEEL_FIELDS) * n:]
         return cls(stamp=stamp, since=float(since), velocity_mode=bool(mode > 0.5),
                    load_factor=float(load), outside_calibration=float(outside),
-                   resynced=bool(resynced > 0.5), **wheels)
+                   resynced=float(resynced), **wheels)
 
 
 @dataclass(frozen=True)
@@ -156,7 +158,7 @@ class PredictionBatch:
     unseen_friction: np.ndarray
     load_factor: np.ndarray
     outside_calibration: np.ndarray  # (N,) as in Prediction
-    resynced: np.ndarray  # (N,) bool, as in Prediction
+    resynced: np.ndarray  # (N,) wheel bits, as in Prediction
 
     def __len__(self):
         return len(self.stamp)
@@ -168,7 +170,7 @@ class PredictionBatch:
                           velocity_mode=bool(self.velocity_mode[k]),
                           load_factor=float(self.load_factor[k]),
                           outside_calibration=float(self.outside_calibration[k]),
-                          resynced=bool(self.resynced[k]), **wheels)
+                          resynced=float(self.resynced[k]), **wheels)
 
     @classmethod
     def of_prediction(cls, prediction: Prediction) -> PredictionBatch:
@@ -178,7 +180,7 @@ class PredictionBatch:
         return cls(stamp=np.array([p.stamp]), since=np.array([p.since]), restart=np.zeros(1, dtype=bool),
                    velocity_mode=np.array([bool(p.velocity_mode)]), load_factor=np.array([p.load_factor]),
                    outside_calibration=np.array([float(p.outside_calibration)]),
-                   resynced=np.array([bool(p.resynced)]), **wheels)
+                   resynced=np.array([float(p.resynced)]), **wheels)
 
 
 class ExplainedTorque(NamedTuple):
@@ -232,7 +234,8 @@ class ModelObserver:
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
         self._load = (np.zeros(2 * self.n), 1.0)
         self._last = None  # (stamp, velocity, signed torque) of the last sample
-        self._was_beyond = False  # the last sample's torque was beyond the calibrated range
+        #: the wheels whose last torque was beyond the calibrated range (n,)
+        self._was_beyond = np.zeros(self.n, dtype=bool)
         #: samples that restart the observer, by cause (reported with the skipped messages)
         self.counters = dict.fromkeys(STAMP_COUNTERS, 0)
 
@@ -597,7 +600,7 @@ class ModelObserver:
             empty = np.empty((0, n))
             return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 5,
                                    velocity_mode, empty, empty, empty, np.empty(0), np.empty(0),
-                                   np.empty(0, dtype=bool))
+                                   np.empty(0))
         first = self._last is None
         if first:
             self._restart(stamp[0], velocity[0], torque[0], velocity_mode[0], target[0])
@@ -639,9 +642,10 @@ class ModelObserver:
         predicted = matvec(phi, np.concatenate([observer_before[None], observer[:-1]])) + forced
 
         beyond = self._beyond_current(torque)
-        was_beyond = np.concatenate([[self._was_beyond], beyond.any(axis=1)[:-1]])
-        resync = beyond.any(axis=1) | was_beyond  # as in update(): and the row after
-        self._was_beyond = bool(beyond[-1].any())
+        was_beyond = np.concatenate([self._was_beyond[None], beyond[:-1]])
+        own = beyond | was_beyond  # a wheel beyond, and the row after
+        resync = own.any(axis=1)
+        self._was_beyond = beyond[-1].copy()
         hold = restart | ~velocity_mode | resync
         integral = np.zeros_like(velocity)
         measured = restart | (velocity_mode & resync)  # rows that take the measured state
@@ -661,7 +665,7 @@ class ModelObserver:
             commanded=target, commanded_before=np.concatenate([self._last_target[None], target[:-1]]),
             velocity_mode=velocity_mode, explained=explained, friction=friction,
             unseen_friction=unseen, load_factor=load, outside_calibration=outside,
-            resynced=measured & ~restart)
+            resynced=wheel_mask(~(own & (velocity_mode & ~restart)[:, None])))
         self._last = (stamp[-1], velocity[-1], torque[-1])
         self._observer, self._command_state = observer[-1], path[-1]
         self._load = (smoothed[-1], float(load[-1]))

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from youbot_fdi.errors import ConfigError
-from youbot_fdi.fdi.learned import wheel_mask
+from youbot_fdi.fdi.learned import mask_wheels, wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import last_true_value, run_lengths, scalar_recursion
@@ -375,7 +375,7 @@ class ResidualEvaluator:
         # no explained torque yet: the speed's sign
         self._last = (sample.stamp, position, velocity,
                       signed_torque(torque, velocity, self.signed_effort))
-        self._started = sample.stamp
+        self._started = np.full(self.n, sample.stamp)  # of each wheel's command-path prediction [s]
         self._fresh = np.full(self.n, sample.stamp)
         self._disturbance = np.zeros(self.n)
 
@@ -565,14 +565,14 @@ class ResidualEvaluator:
             torque, prev_torque, velocity, prev_velocity, p.explained, p.friction, p.unseen_friction,
             load, step)
         observer_f = self._observer_features(p.from_currents)
-        # The command path's prediction settles for startup_time after it started from a
-        # guessed state: a restart, or the measured state taken at a current calibration never
-        # saw (observer.py: the integral the measured current implies is only a guess where the
-        # current limit acts, and the loop winds up unseen).
-        started = last_true_value(restart | p.resynced, stamp, self._started)
+        # A wheel's command-path prediction settles for startup_time after it started from a
+        # guessed state: a restart, or the measured state taken where its current reached what
+        # calibration never saw (observer.py: the integral the measured current implies is only
+        # a guess where the current limit acts, and the loop winds up unseen).
+        started = last_true_value(restart[:, None] | mask_wheels(p.resynced, n), stamp, self._started)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.velocity_mode[:, None], (stamp - started < s.startup_time)[:, None], load * p.unseen_friction,
+            p.velocity_mode[:, None], stamp[:, None] - started < s.startup_time, load * p.unseen_friction,
             self._loop_disturbance(torque_r, step, restart), step)
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,

@@ -15,11 +15,15 @@ as a labelled vector (sensor_msgs/JointState stamped like the sample, ``name`` t
 ``commanded_before_<w>`` the command in force at the sample before
 ``explained_<w>``      torque the dynamics need for the measured speed change [N·m]
 ``friction_<w>``       its friction part [N·m]
+``unseen_friction_<w>`` friction the model may miss out of its calibrated range (a gliding
+                       roller, the contact law's range, other speeds) [N·m]
 ``since``              stamp of the sample before: the interval the prediction spans [s]
 ``velocity_mode``      1 velocity mode, 0 current mode
 ``load_factor``        the platform-wide friction/load condition (1: as identified) [-]
 ``outside_calibration`` wheels whose operating point the learned correction's calibration
                        did not cover (bit w for wheel w; physics only for them) [-]
+``resynced``           1: the command path took the measured state at this sample (a current
+                       calibration never saw); its prediction settles again from there
 =====================  ======================================================================
 
 The ``residual_generator`` node turns a sample and its prediction into /youbot_fdi/residuals.
