@@ -23,6 +23,7 @@ NAMES = load_model('youbot').wheel_names
 RATE = 100.0  # [Hz]
 BAD_EVERY = 10  # one bad message among this many
 SILENCE = 2.0  # [s]
+IN_FLIGHT = 0.1  # [s] for messages already published to arrive
 
 
 def message(stamp, names=NAMES, values=None):
@@ -129,6 +130,8 @@ def test_fdi_nodes_behind_a_flowing_base_are_a_pipeline_warn_not_a_base_comm_los
     assert residuals, 'no residuals before the stall'
     assert pipeline and all(s.level == DiagnosticStatus.OK for s in pipeline)
     harness.executor.remove_node(generator)  # the residual generator stops; the base drives on
+    # residuals it published before it stopped may still be on their way: let them arrive
+    harness.spin_for(IN_FLIGHT, every=1.0 / RATE, action=publish)
     stopped = len(residuals)
     harness.spin_for(1.0, every=1.0 / RATE, action=publish)
     assert len(residuals) == stopped
