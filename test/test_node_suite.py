@@ -56,9 +56,10 @@ def test_prediction_vector_round_trip_is_exact():
 def test_residual_generator_node_pairs_by_stamp_not_by_arrival(harness, tmp_path):
     """Predictions computed offline, published before or after their samples (alternating): the
     node's residuals equal the offline generator's, bit for bit (the command bound, whose
-    allowance low-passes the torque carried, to 1e-9 once it has settled after a restart). A lost prediction: the next
-    interval starts afresh at its sample (as after an observer restart); a lost sample: the
-    prediction after it cannot be paired, counted, no residual from the wrong interval."""
+    allowance low-passes the torque carried, to 1e-9 once it has settled after a restart). A lost
+    prediction: the next interval starts afresh at its sample (as after an observer restart); a
+    lost sample: the prediction after it cannot be paired, counted, no residual from the wrong
+    interval."""
     model = load_model('youbot')
     names, signs = model.wheel_names, model.kinematics.drive_signs
     settings = FdiSettings()

@@ -208,8 +208,7 @@ def mask_wheels(mask, n):
 
 def masked_wheels(mask, n):
     """The wheel indices of a :func:`wheel_mask` value."""
-    bits = int(mask)
-    return [w for w in range(n) if bits >> w & 1]
+    return np.flatnonzero(mask_wheels(mask, n)).tolist()
 
 
 def inertial_feature(acceleration, torque, prev_torque, max_torque):

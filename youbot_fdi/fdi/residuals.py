@@ -484,9 +484,11 @@ class ResidualEvaluator:
         """The torque each wheel carries beyond the model (its torque residual ``torque_residual``
         (N, n) [N·m], NaN: none known), low-passed with the loop's time constant
         (:attr:`loop_time_constant`) over the intervals ``step`` (N, 1) [s], from 0 at the rows
-        that ``restart`` (N,); continues (and leaves) the state. Why: a wheel's firmware loop answers a torque it was not told of (a floor's or
-        a payload's drag, a roller dragged by the base) with a speed error; under its proportional
-        gain that error is the disturbance, low-passed with that time constant, times
+        that ``restart`` (N,); continues (and leaves) the state.
+
+        Why: a wheel's firmware loop answers a torque it was not told of (a floor's or a payload's
+        drag, a roller dragged by the base) with a speed error; under its proportional gain that
+        error is the disturbance, low-passed with that time constant, times
         :attr:`loop_compliance` (the integral only shrinks it), so the command path allows it. A
         runaway carries no such torque: its wheel does what its current says."""
         fresh = restart[:, None]
