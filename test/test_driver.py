@@ -6,7 +6,7 @@ import pytest
 
 from tmcm_rig import forward_command, make_rig, new_channel
 from youbot_fdi.model import load_model
-from youbot_fdi.tmcm.driver import BaseDriver, DriverSettings
+from youbot_fdi.tmcm.driver import BaseDriver, CLOCK_TRACKING, DriverSettings
 from youbot_fdi.tmcm.process_data import MotorStatus, ProcessDataIds
 from youbot_fdi.timing import CycleTiming, parse_cores
 
@@ -66,8 +66,10 @@ def test_a_module_that_does_not_answer_its_cycle_gets_nan_not_its_previous_readi
     second = driver.cycle_count
     for wheel in (0, 1, 3):  # wheel 2 stays silent
         answer(driver, wheel, second, ticks=2000)
-    assert len(driver.test_samples) == 1  # open until the cycle's deadline: the next cycle
-    driver.test_clock.now += 0.01
+    driver.test_clock.now += 0.5 * driver.settings.answer_timeout
+    driver.cycle()
+    assert len(driver.test_samples) == 1  # open until its deadline: answer_timeout after it
+    driver.test_clock.now += 0.5 * driver.settings.answer_timeout
     driver.cycle()
     sample = driver.test_samples[1]
     assert list(sample.answered) == [True, True, False, True]
@@ -79,13 +81,50 @@ def test_a_module_that_does_not_answer_its_cycle_gets_nan_not_its_previous_readi
     assert bus['bus'].values['incomplete_cycles'] == '1'
 
 
+def test_a_module_that_answers_a_later_cycle_is_missing_from_the_earlier_one_at_once(driver):
+    """A module answers its cycles in order: its answer to a later cycle proves the earlier
+    answer will not come, so that cycle closes without waiting for answer_timeout."""
+    driver.cycle()
+    first = driver.cycle_count
+    for wheel in (0, 1, 3):
+        answer(driver, wheel, first)
+    driver.test_clock.now += 0.01
+    driver.cycle()
+    second = driver.cycle_count
+    answer(driver, 2, second)  # wheel 2 skipped the first cycle
+    (sample,) = driver.test_samples
+    assert sample.cycle == first and list(sample.answered) == [True, True, False, True]
+    for wheel in (0, 1, 3):
+        answer(driver, wheel, second)
+    assert [s.cycle for s in driver.test_samples] == [first, second]
+    assert driver.test_samples[1].answered.all() and driver.late_answers == 0
+
+
+def test_answers_read_a_cycle_late_are_data_not_silence(driver):
+    """A busy host's receive thread reads the answers of a cycle after the next cycle went out:
+    they were on the bus in time, and both cycles are published whole, in order."""
+    driver.cycle()
+    first = driver.cycle_count
+    driver.test_clock.now += 0.01
+    driver.cycle()
+    second = driver.cycle_count
+    driver.test_clock.now += 0.01
+    driver.cycle()
+    for cycle in (first, second):
+        for wheel in range(4):
+            answer(driver, wheel, cycle)
+    assert [s.cycle for s in driver.test_samples] == [first, second]
+    assert all(s.answered.all() for s in driver.test_samples)
+    assert driver.missed_cycles.sum() == 0 and driver.late_answers == 0
+
+
 def test_an_answer_after_its_cycle_closed_is_dropped_and_counted(driver):
     driver.cycle()
     late = driver.cycle_count
     for wheel in range(3):
         answer(driver, wheel, late)
-    driver.test_clock.now += 0.01
-    driver.cycle()  # a period later: closes the first cycle without wheel 3
+    driver.test_clock.now += driver.settings.answer_timeout
+    driver.cycle()  # answer_timeout later: closes the first cycle without wheel 3
     answer(driver, 3, late)
     assert driver.late_answers == 1
     assert len(driver.test_samples) == 1 and not driver.test_samples[0].answered[3]
@@ -156,3 +195,86 @@ def test_unpermitted_scheduling_is_reported_not_fatal():
     from youbot_fdi.timing import apply_scheduling
     lines = apply_scheduling(priority=0, cores=(10_000,))  # no such core
     assert len(lines) == 1 and 'not applied' in lines[0]
+
+
+def test_a_module_that_fell_silent_holds_up_only_the_first_cycle_it_missed(driver):
+    """Once a module has answered nothing for answer_timeout, cycles close as soon as the others
+    have answered (its entries NaN): a dead module does not delay every wheel's readings."""
+    driver.cycle()
+    for wheel in range(4):
+        answer(driver, wheel, driver.cycle_count)
+    driver.test_clock.now += 0.01
+    driver.cycle()
+    missed = driver.cycle_count
+    for wheel in range(3):  # wheel 3 falls silent
+        answer(driver, wheel, missed)
+    assert len(driver.test_samples) == 1  # waits: wheel 3's answer may still be on its way
+    driver.test_clock.now += driver.settings.answer_timeout
+    driver.cycle()  # its deadline: closed without wheel 3
+    assert driver.test_samples[-1].cycle == missed
+    later = driver.cycle_count
+    for wheel in range(3):
+        answer(driver, wheel, later)
+    assert driver.test_samples[-1].cycle == later  # at once, no deadline waited
+    assert list(driver.test_samples[-1].answered) == [True, True, True, False]
+    answer(driver, 3, later)  # it answers again: too late for that cycle, counted
+    assert driver.late_answers == 1
+    driver.test_clock.now += 0.01
+    driver.cycle()  # and the next cycle waits for it again
+    for wheel in range(3):
+        answer(driver, wheel, driver.cycle_count)
+    assert driver.test_samples[-1].cycle == later
+    answer(driver, 3, driver.cycle_count)
+    assert driver.test_samples[-1].answered.all()
+
+
+def test_a_host_behind_in_reading_the_bus_waits_that_much_longer(driver):
+    """Modules answer at once; when this host reads their answers late (the delay of the latest
+    answer read), the answers of later cycles are likely still unread, not missing: a cycle
+    waits answer_timeout plus that delay (up to another answer_timeout) before its silent
+    modules get NaN."""
+    timeout = driver.settings.answer_timeout
+    driver.cycle()
+    first = driver.cycle_count
+    driver.test_clock.now += 0.01
+    driver.cycle()
+    second = driver.cycle_count
+    driver.test_clock.now += 0.5 * timeout - 0.01
+    for wheel in range(4):  # read half a timeout after the first cycle went out
+        answer(driver, wheel, first)
+    driver.test_clock.now += timeout
+    driver.cycle()  # the second cycle is past answer_timeout, within the host's delay more
+    assert [s.cycle for s in driver.test_samples] == [first]
+    for wheel in range(4):
+        answer(driver, wheel, second)
+    assert [s.cycle for s in driver.test_samples] == [first, second]
+    assert driver.missed_cycles.sum() == 0
+    driver.test_clock.now += 2.0 * timeout
+    driver.cycle()
+    driver.test_clock.now += 2.0 * timeout  # nobody answers: waited at most two timeouts
+    driver.cycle()
+    assert driver.silent_cycles >= 1
+
+
+def test_modules_that_sampled_at_instants_apart_are_separate_samples(driver):
+    """A host preempted between sending a cycle's commands: one module sampled 30 ms before the
+    others. One stamp for all would misplace its reading by that much; it is a sample of its
+    own (NaN for the others), first, with its own time, and nothing is lost."""
+    for millisecond in range(3000, 5000, 10):  # the driver learns the modules' clock offset
+        driver.cycle()
+        for wheel in range(4):
+            answer(driver, wheel, driver.cycle_count, sample_time=millisecond)
+        driver.test_clock.now += 0.01
+    driver.test_samples.clear()
+    driver.cycle()
+    cycle = driver.cycle_count
+    answer(driver, 0, cycle, ticks=1000, sample_time=5000)
+    for wheel in (1, 2, 3):
+        answer(driver, wheel, cycle, ticks=2000, sample_time=5030)
+    early, late = driver.test_samples
+    assert list(early.answered) == [True, False, False, False]
+    assert list(late.answered) == [False, True, True, True]
+    # (the clock tracking moves by CLOCK_TRACKING of each sample's discrepancy)
+    assert late.stamp - early.stamp == pytest.approx(0.030, abs=4 * CLOCK_TRACKING * 0.030)
+    assert driver.split_cycles == 1 and driver.missed_cycles.sum() == 0
+    np.testing.assert_allclose(late.position[1:], driver.drive.ticks_to_wheel_angle(2000))

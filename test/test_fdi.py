@@ -30,7 +30,6 @@ MAX_DELAY = 0.1  # [s] the issue's median target, held here for every case but c
 #: A module that stops answering leaves its wheel without readings (the driver's NaN): that is
 #: comm_loss once the wheel has been silent for the data timeout, the base's rule, and no sooner.
 DATA_TIMEOUT = load_settings(FdiSettings, 'fdi').data_timeout  # [s]
-SAMPLE_INTERVAL = 0.01  # [s] of record_drive
 CLASSIFICATION_WINDOW = load_settings(FdiSettings, 'fdi').classification_window  # [s]
 
 
@@ -77,8 +76,8 @@ def test_each_fault_is_detected_isolated_and_named(recordings, fault, wheel, at,
     assert {e.wheel for e in alarms} == {wheel}  # nothing else blamed
     assert settled(alarms) == fault
     delay = first.stamp - (DEFAULT_START_STAMP + observable)
-    if fault == 'comm_loss':  # its last answer came one sample before the injection
-        assert delay == pytest.approx(DATA_TIMEOUT - SAMPLE_INTERVAL, abs=1e-6)
+    if fault == 'comm_loss':  # silent from its first unanswered cycle, the injection's
+        assert delay == pytest.approx(DATA_TIMEOUT, abs=1e-6)
         assert first.residuals == (f'silent_{wheel[-2:]}',)
     else:
         assert -0.005 <= delay <= MAX_DELAY, f'delay {delay:.3f} s'

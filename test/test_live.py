@@ -156,7 +156,7 @@ def test_reactions_act_through_the_topics(fault, wheel):
     """demo --react (issue 15): the reaction is an INFO event of the right action and wheel; a
     runaway motor's stop frame is on the bus within 100 ms of the fault event; a stopped base
     comes to rest."""
-    plan = DemoPlan(SCRIPT.scaled_to(8.0), fault, wheel, 3.0, console=False, layout='composed',
+    plan = DemoPlan(SCRIPT.scaled_to(8.0), fault, wheel, 3.0, console=False, layout='separate',
                     react=True)
     run, stops = in_fresh_process(_reacting_demo, plan)
     assert {e.wheel for e in alarms(run.events)} == {wheel}

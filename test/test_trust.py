@@ -289,3 +289,21 @@ def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(m
     _, allowed, *_ = evaluator._command_terms(*args, np.full((1, 4), 0.05), carried[-1:], step[:1])
     extra = np.maximum(0.05, np.abs(carried[-1])) / stiffness
     np.testing.assert_allclose(allowed - plain, extra[None])
+
+
+def test_a_wheel_is_silent_from_its_first_sample_without_a_reading_not_across_a_gap(model):
+    """Only a sample closed without a wheel's reading shows its module silent: after a gap with no
+    samples at all (the stream or the host stalled: the base's comm_loss if it lasts), a wheel
+    missing from the next sample has been silent 0 s, and its silence then grows with the
+    samples it misses; any chunking of the rows gives the same times."""
+    stamps = np.array([0.0, 0.01, 0.31, 0.32, 0.33, 0.34, 0.35])  # 0.3 s without any sample
+    answered = np.ones((len(stamps), 4), dtype=bool)
+    answered[2:6, 1] = False  # wheel 1 missing from the sample after the gap on
+    answered[6, 3] = False  # wheel 3 misses one sample
+    expected = np.zeros((len(stamps), 4))
+    expected[2:6, 1] = stamps[2:6] - stamps[2]
+    whole = ResidualEvaluator(model, FdiSettings()).silence(stamps, answered)
+    np.testing.assert_allclose(whole, expected, atol=1e-12)
+    chunked = ResidualEvaluator(model, FdiSettings())
+    rows = [chunked.silence(stamps[k:k + 1], answered[k:k + 1]) for k in range(len(stamps))]
+    np.testing.assert_allclose(np.concatenate(rows), expected, atol=1e-12)

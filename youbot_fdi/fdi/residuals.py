@@ -353,7 +353,8 @@ class ResidualEvaluator:
                                            bound_weights(PRIOR_SETTINGS, family))
                         for family in BOUND_TERMS}
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
-        self._fresh = None  # (n,) stamp of each wheel's last reading [s]
+        self._silent_since = None  # (n,) stamp from which each wheel's silence counts [s]
+        self._answering = np.ones(self.n, dtype=bool)  # each wheel read in the last sample
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._position_frozen = np.zeros(self.n, dtype=int)
@@ -376,19 +377,27 @@ class ResidualEvaluator:
         self._last = (sample.stamp, position, velocity,
                       signed_torque(torque, velocity, self.signed_effort))
         self._started = np.full(self.n, sample.stamp)  # of each wheel's command-path prediction [s]
-        self._fresh = np.full(self.n, sample.stamp)
+        self._silent_since = np.full(self.n, sample.stamp)
+        self._answering = np.ones(self.n, dtype=bool)
         self._disturbance = np.zeros(self.n)
 
     # ------------------------------------------------------------------ missing readings
     def silence(self, stamps: np.ndarray, answered: np.ndarray) -> np.ndarray:
-        """Time [s] (N, n) since each wheel's last reading at each of ``stamps`` (N,), from which
-        wheels ``answered`` (N, n) bool in each row; continues (and leaves) the state."""
+        """How long [s] (N, n) each wheel has been silent at each of ``stamps`` (N,), from which
+        wheels ``answered`` (N, n) bool in each row; continues (and leaves) the state.
+
+        A wheel's silence counts from the first sample that came without its reading, not from
+        its last reading: only a cycle closed without its module shows that module silent. A
+        gap with no samples at all (the base's stream stalled, or this host) says nothing about
+        one wheel; it is the base's own ``comm_loss`` when it lasts."""
         stamps = np.asarray(stamps, dtype=float)
-        if self._fresh is None:  # silence counts from the first sample seen
-            self._fresh = np.full(self.n, stamps[0])
-        fresh = last_true_value(answered, stamps, self._fresh)
-        self._fresh = fresh[-1]
-        return stamps[:, None] - fresh
+        answered = np.asarray(answered, dtype=bool)
+        if self._silent_since is None:  # silence counts from the first sample seen
+            self._silent_since = np.full(self.n, stamps[0])
+        before = np.concatenate([self._answering[None], answered[:-1]])
+        since = last_true_value(answered | before, stamps, self._silent_since)
+        self._silent_since, self._answering = since[-1], answered[-1]
+        return stamps[:, None] - since
 
     def missing_batch(self, joints: JointBatch) -> ResidualBatch:
         """Frames for rows of ``joints`` (:class:`~youbot_fdi.samples.JointBatch`) in which some
@@ -590,7 +599,7 @@ class ResidualEvaluator:
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
         self._frozen, self._effort_frozen, self._started = frozen[-1], effort_frozen[-1], started[-1]
         self._position_frozen = position_frozen[-1]
-        self._fresh = np.full(n, stamp[-1])
+        self._silent_since, self._answering = np.full(n, stamp[-1]), np.ones(n, dtype=bool)
         features = {'torque': torque_f, 'observer': observer_f, 'command': velocity_f,
                     'effort': effort_f, 'encoder': encoder_f}
         judged = {f: features[f] for f in ('torque', 'observer', 'encoder')}

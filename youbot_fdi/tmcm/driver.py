@@ -5,11 +5,19 @@ sends every module its process-data command; the modules' status frames come bac
 each echoing the cycle it answers, and are assembled **per cycle** into one :class:`BaseSample` in
 wheel units (rad, rad/s, N·m), driver convention: every wheel's readings from that cycle, stamped
 with the cycle's time, as one EtherCAT frame reads every slave. A sample is complete once every
-module has answered its cycle; a module that has not answered by the time the next cycle starts
-gets NaN for its entries (counted per wheel as ``missed_cycles``), never its previous value, which
-would read as a frozen encoder (a cycle that began less than half a period before the next is
-left open for its answers, and closed once a newer cycle is complete). An answer that comes after
-its cycle was closed is counted (``late_answers``) and dropped. ``on_sample`` is called with each
+module has answered its cycle. A module that has not answered gets NaN for its entries (counted per
+wheel as ``missed_cycles``), never its previous value, which would read as a frozen encoder, once
+its silence is certain: it answered a later cycle (a module answers its cycles in order on the bus,
+so the older answer will not come), it is missing already (it let a cycle's ``answer_timeout``
+pass and answered nothing since: a module that fell silent holds up no cycle but the first it
+missed), or ``answer_timeout`` passed since the cycle was sent, plus as far as this host is
+behind in reading the bus (the delay of the latest answer read, up to another ``answer_timeout``:
+answers not read yet are not silence). A cycle is
+never closed merely because the next one started: on a busy host the receive thread reads answers
+that were on the bus in time a cycle late, and those are data, not silence. An answer that comes
+after its cycle was closed is counted (``late_answers``) and dropped. Modules whose sample times lie
+more than half a period apart (the host was preempted between sending their commands) are
+separate samples of the cycle, each with its own time (``split_cycles``). ``on_sample`` is called with each
 sample as it is closed.
 
 Safety: a **command watchdog** turns a command older than ``command_timeout`` into zero speed (the
@@ -24,6 +32,7 @@ false`` keeps it stopped until ``motors_on``.
 from collections import deque
 from dataclasses import dataclass
 import enum
+import itertools
 import threading
 import time
 
@@ -42,12 +51,11 @@ from youbot_fdi.timing import CycleTiming, parse_cores
 #: Fraction of the clock-offset error corrected per sample (a slow tracking filter).
 CLOCK_TRACKING = 0.01
 MAX_REALTIME_PRIORITY = 99  # SCHED_FIFO priorities are 1..99 on Linux
+#: Modules of one cycle whose sample times lie within this share of a period sampled one instant
+#: (the module clocks count whole milliseconds); further apart, separate samples [-].
+SAME_INSTANT_SHARE = 0.5
 #: Closed cycle numbers remembered, so that a late answer is told from a new cycle's first one.
 CLOSED_CYCLES_KEPT = 16
-#: A cycle still waiting for answers is closed when the next one starts at least this share of a
-#: period after it (a timer catching up fires cycles back to back: their answers are still on
-#: their way, not missing) [-].
-CLOSE_AFTER_PERIOD_SHARE = 0.5
 
 
 class CommandKind(str, enum.Enum):
@@ -78,6 +86,11 @@ class DriverSettings:
     cycle_rate: float = 100.0  # process-data cycles per second [Hz]
     command_timeout: float = 0.25  # command watchdog [s]
     stale_cycles: int = 10  # a module silent this many cycles is lost
+    #: how long a cycle waits for a module that answered nothing since [s]: an answer takes under a
+    #: millisecond on the wire, what delays it is the host reading it. As long as a module waits
+    #: for its command (the controller timeout's default): a host later than that has stopped the
+    #: modules anyway.
+    answer_timeout: float = 0.1
     tmcl_timeout: float = 0.2  # wait for a TMCL reply [s]
     controller_timeout: float = 0.1  # written to every module's GP 90 at start [s]
     recover_controller_timeout: bool = True  # clear a tripped GP 90 once commands are fresh again
@@ -88,7 +101,8 @@ class DriverSettings:
     def validate(self, source='<settings>'):
         """Raise ConfigError on unusable values."""
         problems = []
-        for name in ('cycle_rate', 'command_timeout', 'tmcl_timeout', 'diagnostics_rate'):
+        for name in ('cycle_rate', 'command_timeout', 'tmcl_timeout', 'diagnostics_rate',
+                     'answer_timeout'):
             if getattr(self, name) <= 0:
                 problems.append(f'{name} must be > 0')
         if self.stale_cycles < 1:
@@ -138,9 +152,15 @@ class _CycleSlot:
         self.effort = np.full(n, np.nan)
         self.flags = np.zeros(n, dtype=np.int64)
         self.stamps = np.full(n, np.nan)  # each module's sample time on the driver clock [s]
+        self.passed = np.zeros(n, dtype=bool)  # modules that answered a later cycle instead
 
     def complete(self):
         return bool(np.all(np.isfinite(self.stamps)))
+
+    def settled(self, missing):
+        """Every module answered or will not: it answered a later cycle, or is ``missing`` (n,)
+        bool: it let a cycle's deadline pass and has answered nothing since."""
+        return bool(np.all(np.isfinite(self.stamps) | self.passed | missing))
 
 
 @dataclass(frozen=True)
@@ -166,8 +186,8 @@ class BaseDriver:
         Returns the current time [s] (the node passes ROS time, so sim time works).
     on_sample : callable, optional
         Called with each :class:`BaseSample` as its cycle closes, in cycle order: from the CAN
-        receive thread when the last module answers, or from :meth:`cycle` when the next cycle
-        starts with modules still silent.
+        receive thread when its last module answers (or answers a later cycle), or from
+        :meth:`cycle` once ``answer_timeout`` passed with modules still silent.
     """
 
     def __init__(self, model, bus, settings=DriverSettings(), ids=ProcessDataIds(),
@@ -192,6 +212,8 @@ class BaseDriver:
                 self._status_ids[can_id] = (k, part)
         self._flags = np.zeros(n, dtype=np.int64)  # each module's latest flags (health)
         self._received = np.full(n, -np.inf)
+        self._missing = np.zeros(n, dtype=bool)  # modules that let a cycle's deadline pass since
+        self._read_lag = 0.0  # from sending a cycle to reading its answer, the latest [s]
         self.on_sample = on_sample
         self._open = {}  # cycle counter -> _CycleSlot still waiting for answers
         self._closed = deque(maxlen=CLOSED_CYCLES_KEPT)
@@ -203,6 +225,7 @@ class BaseDriver:
         self.missed_cycles = np.zeros(n, dtype=np.int64)
         self.late_answers = 0  # answers that came after their cycle was closed
         self.silent_cycles = 0  # cycles closed with no answer at all (no sample)
+        self.split_cycles = 0  # cycles whose modules sampled at instants apart (several samples)
         self.samples_closed = 0
         period = 1.0 / settings.cycle_rate
         #: the host's cycle: period and lateness; late past the modules' controller timeout
@@ -265,13 +288,16 @@ class BaseDriver:
                 for k, command in enumerate(commands)]
 
     def cycle(self, now=None):
-        """Close the cycle before (its silent modules get NaN), then send one process-data
-        command to every module; returns how many went out."""
+        """Close the cycles that waited ``answer_timeout`` (their silent modules get NaN), then
+        send one process-data command to every module; returns how many went out."""
         now = self.clock() if now is None else now
         with self._lock:
             self.timing.tick(now)
-            due = now - CLOSE_AFTER_PERIOD_SHARE / self.settings.cycle_rate
+            timeout = self.settings.answer_timeout
+            due = now - timeout - min(self._read_lag, timeout)
             for slot in [s for s in self._open.values() if s.sent_at <= due]:
+                self._close(slot)
+            for slot in [s for s in self._open.values() if s.settled(self._missing)]:
                 self._close(slot)
             commands = self._module_commands(now)
             self.cycle_count = (self.cycle_count + 1) % CYCLE_MODULO
@@ -325,6 +351,9 @@ class BaseDriver:
                 return
             self._flags[index] = status.error_flags
             self._received[index] = self.clock()
+            self._missing[index] = False  # it answers (if late): cycles wait for it again
+            if status.cycle in self._sent_at:  # a module answers at once: the rest is this host
+                self._read_lag = max(0.0, self._received[index] - self._sent_at[status.cycle])
             slot = self._open.get(status.cycle)
             if slot is None:
                 if status.cycle in self._closed:  # its cycle was closed without it
@@ -338,11 +367,11 @@ class BaseDriver:
             slot.velocity[index] = float(self.drive.rpm_to_wheel_speed(status.velocity))
             slot.effort[index] = float(self.drive.milliamps_to_torque(status.current))
             slot.flags[index] = status.error_flags
-            if not slot.complete():
-                return
-            for older in [c for c in self._open.values() if c is not slot and c.sent_at <= slot.sent_at]:
-                self._close(older)  # an older cycle still open: its silent modules are lost
-            self._close(slot)
+            older = list(itertools.takewhile(lambda c: c is not slot, self._open.values()))
+            for waiting in older:  # this module answers in order: it skipped those cycles
+                waiting.passed[index] = True
+            for done in [c for c in older + [slot] if c.settled(self._missing)]:  # in cycle order
+                self._close(done)
         self._deliver()
 
     def restart_counters(self):
@@ -351,7 +380,7 @@ class BaseDriver:
         with self._lock:
             self.timing = CycleTiming(self.timing.nominal_period, self.timing.late_after)
             self.missed_cycles[:] = 0
-            self.late_answers = self.silent_cycles = self.samples_closed = 0
+            self.late_answers = self.silent_cycles = self.samples_closed = self.split_cycles = 0
 
     def close_cycles(self):
         """Close every open cycle now (its deadline has passed: e.g. a lockstep rig that has
@@ -370,20 +399,42 @@ class BaseDriver:
         del self._open[slot.cycle]
         self._closed.append(slot.cycle)
         answered = np.isfinite(slot.stamps)
+        self._missing |= ~answered & ~slot.passed  # let its deadline pass: no cycle waits for it
         self.missed_cycles += ~answered
         if not answered.any():
             self.silent_cycles += 1
             return
-        # The cycle's time: when its modules sampled (their clocks, mapped to the driver's); a
-        # later estimate of the clock offset never steps back before the last sample's stamp.
-        stamp = max(float(np.mean(slot.stamps[answered])), self._last_stamp)
-        self._last_stamp = stamp
         now = self.clock()
-        sample = BaseSample(stamp, slot.position, slot.velocity, slot.effort, slot.flags,
-                            now - self._received, slot.cycle)
-        self._latest = sample
-        self.samples_closed += 1
-        self._ready.append(sample)
+        instants = self._instants(slot.stamps)
+        self.split_cycles += len(instants) > 1
+        for together in instants:
+            # Its time: when its modules sampled (their clocks, mapped to the driver's); a later
+            # estimate of the clock offset never steps back before the last sample's stamp.
+            stamp = max(float(np.mean(slot.stamps[together])), self._last_stamp)
+            self._last_stamp = stamp
+            sample = BaseSample(stamp, *(np.where(together, values, np.nan) for values in
+                                         (slot.position, slot.velocity, slot.effort)),
+                                np.where(together, slot.flags, 0), now - self._received, slot.cycle)
+            self._latest = sample
+            self.samples_closed += 1
+            self._ready.append(sample)
+
+    def _instants(self, stamps):
+        """The modules (masks (n,), in time order) that sampled one instant of a cycle, from their
+        sample ``stamps`` (n,) [s] (NaN: no answer). Modules sample when their command arrives: a
+        host preempted between sending them spreads one cycle over several instants, and one
+        stamp for all would misplace some wheels' readings by that much (a wheel read 30 ms
+        early under a common stamp turned too little: a frozen encoder). Sample times more than
+        ``SAME_INSTANT_SHARE`` of a period apart are separate samples."""
+        order = np.argsort(stamps)[:int(np.count_nonzero(np.isfinite(stamps)))]
+        gap = SAME_INSTANT_SHARE / self.settings.cycle_rate
+        breaks = np.flatnonzero(np.diff(stamps[order]) > gap) + 1
+        masks = []
+        for members in np.split(order, breaks):
+            mask = np.zeros(len(stamps), dtype=bool)
+            mask[members] = True
+            masks.append(mask)
+        return masks
 
     def _deliver(self):
         """Hand the closed samples to ``on_sample`` in cycle order (outside the driver's lock; one
@@ -522,6 +573,7 @@ class BaseDriver:
                        'samples': str(self.samples_closed),
                        'incomplete_cycles': str(int(missed.sum())),
                        'late_answers': str(self.late_answers),
+                       'split_cycles': str(self.split_cycles),
                        'silent_cycles': str(self.silent_cycles),
                        # A cycle later than this stops the modules (their GP 90 timeout).
                        'controller_timeout_ms': f'{1000.0 * self.settings.controller_timeout:g}',

@@ -21,7 +21,12 @@ Faults (CONTRACT.md vocabulary) can be injected while it runs: ``runaway`` (keep
 speed freeze), ``comm_loss`` (the module stops answering and, hearing nothing, times out).
 
 Time is simulated time: :meth:`VirtualYoubot.advance` steps it; :meth:`VirtualYoubot.start` runs a
-thread that keeps it in step with the wall clock.
+thread that keeps it in step with the wall clock. Following the wall clock, a module lives on bus
+time, as a real one does, however late this process reads the frames (the GIL, a busy host): it
+answers a process-data command with its state at the moment the frame was on the bus (its CAN
+timestamp; one cycle's answers are not spread over the time it took to read them), and the
+simulation waits up to ``FRAME_LOOKBACK`` for frames before a module times out (GP 90): a frame
+still unread is not a silent host.
 """
 from collections import deque
 from dataclasses import dataclass
@@ -46,6 +51,10 @@ FIRMWARE_ID = b'1632V200'  # TMCM-1632, firmware 2.00 (type 0 reply)
 FIRMWARE_BINARY = (1632 << 16) | 200  # type 1 reply value
 MODULE_TYPE_VOLTAGE = 2400  # GAP 151: 24.00 V in 0.01 V
 NO_FAULT = 'none'
+#: How late a command frame may be read and still count at its bus time [s] (answered with the
+#: state of then; the simulation waits this long for it before a module times out): the modules'
+#: default controller timeout, the longest a host may be late before a module must stop.
+FRAME_LOOKBACK = 0.1
 MOTION_COMMANDS = (TmclCommand.ROR, TmclCommand.ROL, TmclCommand.MST, TmclCommand.MVP)
 READ_ONLY = (AxisParameter.ACTUAL_VELOCITY, AxisParameter.ACTUAL_CURRENT, AxisParameter.ERROR_FLAGS,
              AxisParameter.I2T_SUM, AxisParameter.SUPPLY_VOLTAGE, AxisParameter.INITIALIZED)
@@ -157,7 +166,7 @@ class VirtualYoubot:
         self._rng = np.random.default_rng(settings.seed)
         self._lock = threading.RLock()
         self._thread = None
-        self._clock_origin = None  # (wall [s], simulated [s]) once running in real time
+        self._clock_origin = None  # (monotonic [s], epoch [s], simulated [s]) in real time
         self._running = threading.Event()
         self.modules = [_Module(i, int(round(model.drive.max_current * MILLISECONDS)),
                                 int(model.drive.encoder_ticks_per_revolution),
@@ -166,8 +175,9 @@ class VirtualYoubot:
         self._module_index = {m: k for k, m in enumerate(settings.module_ids)}
         self.controller_timeout = settings.controller_timeout
         self._last_current = np.zeros(len(self.modules))
-        delay_steps = int(round(settings.measurement_delay / self.period))
-        self._history = deque(maxlen=delay_steps + 1)
+        self._delay_steps = int(round(settings.measurement_delay / self.period))
+        self._lookback_steps = int(round(FRAME_LOOKBACK / self.period))
+        self._history = deque(maxlen=self._delay_steps + self._lookback_steps + 1)
         self._record_history()
         self._faults = {}
         self._frozen = {}
@@ -235,7 +245,7 @@ class VirtualYoubot:
         reply = TmclReply(self.settings.host_id, module.can_id, int(status), command, int(value))
         self.transport.send(*reply.to_can())
 
-    def _on_frame(self, arbitration_id, data, _timestamp):
+    def _on_frame(self, arbitration_id, data, timestamp):
         with self._lock:
             index = self._module_index.get(arbitration_id)
             if index is not None:
@@ -250,7 +260,7 @@ class VirtualYoubot:
             if index is None or self._fault(index) is FaultKind.COMM_LOSS:
                 return
             command = MotorCommand.decode(data)
-            self._on_process_data(index, command)
+            self._on_process_data(index, command, timestamp)
 
     def _on_tmcl(self, module, arbitration_id, data):
         try:
@@ -376,16 +386,23 @@ class VirtualYoubot:
             ControlMode.MOTOR_STOP
         module.target = int(target)
 
-    def _on_process_data(self, index, command):
-        self._catch_up()
+    def _on_process_data(self, index, command, bus_time=None):
+        """A module's process-data command, on the bus at ``bus_time`` (epoch [s]; None: now):
+        the simulation is brought to that moment, and the module answers with its state then."""
+        back = 0
+        at = self._simulated_time(bus_time)
+        if at is not None:
+            self._advance_to(at)
+            back = int(round((self.time - at) / self.period))
+            back = max(0, min(back, self._lookback_steps, len(self._history) - 1 - self._delay_steps))
         module = self.modules[index]
         module.process_data_control = True
-        module.last_command_time = self.time
+        module.last_command_time = self.time - back * self.period
         module.cycle = command.cycle
         if command.mode in (ControlMode.MOTOR_STOP, ControlMode.POSITION, ControlMode.VELOCITY,
                             ControlMode.NO_MORE_ACTION, ControlMode.CURRENT):
             self._set_mode(module, command.mode, command.value)
-        status = self._status(index)
+        status = self._status(index, back)
         for can_id, payload in zip(self.ids.status_ids(module.can_id), status.encode()):
             self.transport.send(can_id, payload)
 
@@ -394,13 +411,14 @@ class VirtualYoubot:
         self._history.append((self.simulator.position.copy(), self.simulator.velocity.copy(),
                               self._last_current.copy()))
 
-    def _reported(self):
-        """(position, velocity, current) as the modules report them: ``measurement_delay`` old."""
-        return self._history[0]
+    def _reported(self, back=0):
+        """(position, velocity, current) as the modules report them: ``measurement_delay`` old,
+        ``back`` firmware periods before now."""
+        return self._history[max(0, len(self._history) - 1 - self._delay_steps - back)]
 
-    def _ticks(self, module, raw=False):
+    def _ticks(self, module, raw=False, back=0):
         index = self.modules.index(module)
-        angle = self._reported()[0][index]
+        angle = self._reported(back)[0][index]
         frozen = self._frozen.get(index)
         if frozen is not None and frozen[0] == 'encoder':
             angle = frozen[1]
@@ -419,10 +437,11 @@ class VirtualYoubot:
             flags |= ErrorFlag.OVER_CURRENT
         return int(flags)
 
-    def _status(self, index):
-        """The module's current sample in motor units and driver convention."""
+    def _status(self, index, back=0):
+        """The module's sample ``back`` firmware periods ago (0: now) in motor units and driver
+        convention."""
         module = self.modules[index]
-        _, reported_speed, reported_current = self._reported()
+        _, reported_speed, reported_current = self._reported(back)
         speed = reported_speed[index]
         frozen = self._frozen.get(index)
         if frozen is not None and frozen[0] == 'encoder':
@@ -433,8 +452,8 @@ class VirtualYoubot:
             rpm += self._rng.normal(0.0, self.settings.velocity_noise)
         if self.settings.current_noise > 0:
             current_ma += self._rng.normal(0.0, self.settings.current_noise)
-        sampled = self.time - self.settings.measurement_delay
-        return MotorStatus(position=self._ticks(module), velocity=int(round(rpm)),
+        sampled = self.time - self.settings.measurement_delay - back * self.period
+        return MotorStatus(position=self._ticks(module, back=back), velocity=int(round(rpm)),
                            current=int(round(current_ma)), error_flags=self._flags(index, rpm),
                            target=module.target, mode=int(module.mode), cycle=module.cycle,
                            sample_time=int(round(sampled * MILLISECONDS)) % SAMPLE_TIME_MODULO or 1)
@@ -518,9 +537,10 @@ class VirtualYoubot:
     # ------------------------------------------------------------------ real time
     def follow_wall_clock(self):
         """From now on the simulated time follows the wall clock: every module answer first
-        catches the simulation up to it (:meth:`start` also steps it in a thread of its own)."""
+        catches the simulation up to its frame's bus time (:meth:`start` also steps it in a thread
+        of its own)."""
         with self._lock:
-            self._clock_origin = (time.monotonic(), self.time)
+            self._clock_origin = (time.monotonic(), time.time(), self.time)
 
     def start(self):
         """Run the simulation in a thread that follows the wall clock."""
@@ -531,30 +551,48 @@ class VirtualYoubot:
         self._thread = threading.Thread(target=self._run, name='virtual_youbot', daemon=True)
         self._thread.start()
 
-    def _lag(self):
-        """How far the simulation is behind the wall clock [s] (0 unless running in real time)."""
+    def _simulated_time(self, bus_time=None):
+        """The simulated time [s] of a bus timestamp (epoch [s]; None or 0: now), or None unless
+        following the wall clock."""
         if self._clock_origin is None:
-            return 0.0
-        wall, simulated = self._clock_origin
-        return (time.monotonic() - wall) - (self.time - simulated)
+            return None
+        monotonic, epoch, simulated = self._clock_origin
+        if not bus_time:
+            return simulated + time.monotonic() - monotonic
+        return simulated + bus_time - epoch
 
-    def _catch_up(self):
-        """Advance the simulation to the wall clock before a module answers (call with the lock
-        held). Real modules sample their encoders on their own hardware clock: a simulation
-        thread starved of the CPU (the GIL, a busy host) must not hand the driver the same
-        position twice while time goes on, which reads as frozen encoders on every wheel."""
-        steps = int(self._lag() / self.period)
-        for _ in range(steps):
+    def _advance_to(self, simulated):
+        """Step the simulation up to ``simulated`` [s] (call with the lock held). Real modules
+        sample their encoders on their own hardware clock: a simulation thread starved of the
+        CPU must not hand the driver the same position twice while time goes on, which reads as
+        frozen encoders on every wheel."""
+        for _ in range(int(round((simulated - self.time) / self.period))):
             self._step()
+
+    def _realtime_target(self):
+        """Where the real-time thread takes the simulation [s]: now, but not past the moment a
+        module under process data would time out while its next frame may still be unread
+        (until ``FRAME_LOOKBACK`` after it: then the host is silent). Call with the lock held."""
+        now = self._simulated_time()
+        if self.controller_timeout <= 0:
+            return now
+        waiting = [m.last_command_time for k, m in enumerate(self.modules)
+                   if m.process_data_control and not m.sticky_flags & ErrorFlag.TIMEOUT
+                   and self._fault(k) not in (FaultKind.COMM_LOSS, FaultKind.RUNAWAY)]
+        if not waiting:
+            return now
+        hold = min(waiting) + self.controller_timeout - self.period
+        return hold if hold < now < hold + FRAME_LOOKBACK else now
 
     def _run(self):
         step = self.settings.realtime_step
         while self._running.is_set():
-            lag = self._lag()
-            if lag >= step:
+            with self._lock:
+                ahead = self._realtime_target() - self.time
+            if ahead >= step:
                 self.advance(step)
             else:
-                time.sleep(step - lag)
+                time.sleep(step - max(ahead, 0.0))
 
     def close(self):
         """Stop the real-time thread and the transport."""
