@@ -17,13 +17,18 @@ from youbot_fdi.samples import message_time
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model
 
-# `make check` (marker fast, conftest.py) takes every test here but these: identifications and the
-# real recordings, which stay in `make test`.
+# `make check` (marker fast, conftest.py) takes every test here but these: identifications (the
+# ``calibrated`` fixture is one, half a minute on a slow day) and the real recordings, which stay
+# in `make test`.
 FAST_EXCEPT = ('test_real_robotino_runs_convert_and_a_frozen_encoder_is_found',
                'test_commands_stamped_before_with_or_after_their_samples_give_no_false_alarm',
                'test_identify_reports_the_coverage_of_its_bounds',
                'test_the_contact_law_explains_real_omni_wheel_currents_better',
-               'test_identify_learns_a_negative_delay_for_commands_stamped_late')
+               'test_identify_learns_a_negative_delay_for_commands_stamped_late',
+               'test_a_frozen_encoder_is_found_at_a_low_rate',
+               'test_a_surface_change_on_every_wheel_is_a_warning_not_a_fault',
+               'test_one_wheel_departing_from_the_others_still_alarms',
+               'test_re_sent_messages_are_missing_data_not_a_wheel_fault')
 
 DRIVE = [(0.3, 0.0, 0.0, 1.5), (0.0, 0.25, 0.0, 1.5), (0.0, 0.0, 0.9, 1.5), (0.2, -0.2, 0.0, 1.5),
          (-0.25, 0.1, -0.5, 1.5), (0.0, 0.0, 0.0, 0.5)]
