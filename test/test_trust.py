@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from youbot_fdi.fdi.decision import DecisionMaker
+from youbot_fdi.fdi.learned import mask_wheels
 from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, FROZEN_NOISE_SIGMAS,
                                       PRIOR_SETTINGS, ResidualEvaluator, ResidualFrame, bound_weights)
@@ -307,3 +308,27 @@ def test_a_wheel_is_silent_from_its_first_sample_without_a_reading_not_across_a_
     chunked = ResidualEvaluator(model, FdiSettings())
     rows = [chunked.silence(stamps[k:k + 1], answered[k:k + 1]) for k in range(len(stamps))]
     np.testing.assert_allclose(np.concatenate(rows), expected, atol=1e-12)
+
+
+def test_a_command_that_comes_after_samples_it_was_in_force_for_is_counted_late(model):
+    """Live, a host behind may deliver a command after samples stamped later than it: those were
+    judged without it (a replay of the same recording would not be), which the observer counts
+    for the input diagnostics; a command for samples still to come is not late."""
+    from youbot_fdi.fdi.observer import COMMANDS_LATE, ModelObserver
+    from youbot_fdi.samples import CommandSample, JointSample
+    settings = FdiSettings()
+    observer = ModelObserver(model, settings)
+    observer.command(CommandSample(0.0, 'velocity', np.zeros(4)))
+    for stamp in (0.01, 0.02, 0.03):
+        observer.update(JointSample(stamp, np.zeros(4), np.zeros(4), np.zeros(4)))
+    observer.command(CommandSample(0.03 - settings.input_delay + 0.001, 'velocity', np.ones(4)))
+    assert observer.counters[COMMANDS_LATE] == 0  # in force from after the last sample judged
+    observer.command(CommandSample(0.02 - settings.input_delay, 'velocity', np.ones(4)))
+    assert observer.counters[COMMANDS_LATE] == 1  # was in force at 0.02 and 0.03
+    # the command path of every wheel starts again from the measured state and settles
+    speeds = np.full(4, 0.5)
+    prediction = observer.update(JointSample(0.04, np.zeros(4), speeds, np.zeros(4)))
+    assert list(mask_wheels(prediction.resynced, 4)) == [True] * 4
+    np.testing.assert_allclose(prediction.from_commands, model.kinematics.drive_signs * speeds)
+    following = observer.update(JointSample(0.05, np.zeros(4), speeds, np.zeros(4)))
+    assert not mask_wheels(following.resynced, 4).any()

@@ -183,6 +183,8 @@ INPUT_PROBLEMS = {
     'unpaired': 'a prediction not starting at the last sample (one lost between nodes)',
     'dropped_unpaired': 'a sample or prediction whose counterpart never came',
     'skipped_unstamped': 'no header stamp: cannot be paired with its prediction (run the observer fused)',
+    'commands_late': ('a command that came after samples it was in force for had been judged (this '
+                      'host is behind; their command path was judged without it)'),
 }
 
 

@@ -51,6 +51,7 @@ if TYPE_CHECKING:  # names in annotations only
 
 #: Why a sample restarted the observer: counters of :attr:`ModelObserver.counters`.
 STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
+COMMANDS_LATE = 'commands_late'  # the counter of commands in force for samples judged before them
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
 #: The fewest voting wheels whose median is the load factor (a median of three is moved by no
 #: single wheel).
@@ -236,8 +237,11 @@ class ModelObserver:
         self._last = None  # (stamp, velocity, signed torque) of the last sample
         #: the wheels whose last torque was beyond the calibrated range (n,)
         self._was_beyond = np.zeros(self.n, dtype=bool)
-        #: samples that restart the observer, by cause (reported with the skipped messages)
-        self.counters = dict.fromkeys(STAMP_COUNTERS, 0)
+        #: a command came after samples it was in force for: the next row resyncs every wheel
+        self._command_came_late = False
+        #: samples that restart the observer, by cause, and commands that came late (reported
+        #: with the skipped messages)
+        self.counters = dict.fromkeys(STAMP_COUNTERS + (COMMANDS_LATE,), 0)
 
     # ------------------------------------------------------------------ helpers
     def _count_restarts(self, dt):
@@ -356,7 +360,14 @@ class ModelObserver:
 
     # ------------------------------------------------------------------ commands
     def command(self, sample: CommandSample) -> None:
-        """Take a /wheel_commands sample (:class:`~youbot_fdi.samples.CommandSample`)."""
+        """Take a /wheel_commands sample (:class:`~youbot_fdi.samples.CommandSample`). One that
+        was in force (by its stamp) for a sample already judged came too late for it: counted in
+        ``counters['commands_late']`` (live, a host behind delivers messages out of order; the
+        command path of those samples was judged without it, and a replay of the same recording
+        may differ there)."""
+        if self._last is not None and sample.stamp <= self._last[0] - self.settings.input_delay:
+            self.counters[COMMANDS_LATE] += 1
+            self._command_came_late = True
         known = self._known_commands
         keep = max(len(known) + 1 - MAX_PENDING_COMMANDS, 0)
         self._known_commands = CommandBatch(
@@ -644,6 +655,11 @@ class ModelObserver:
         beyond = self._beyond_current(torque)
         was_beyond = np.concatenate([self._was_beyond[None], beyond[:-1]])
         own = beyond | was_beyond  # a wheel beyond, and the row after
+        # A command path judged without the command in force (it came late) rests on a state (the
+        # loop's integral) built from the wrong command: it starts again from the measured state
+        # and settles, as after a start.
+        own[0] |= self._command_came_late
+        self._command_came_late = False
         resync = own.any(axis=1)
         self._was_beyond = beyond[-1].copy()
         hold = restart | ~velocity_mode | resync

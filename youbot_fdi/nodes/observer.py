@@ -91,8 +91,7 @@ class ObserverNode(Node):
         sample = self.mapper.command_sample(stamp, msg.name, msg.velocity, msg.effort)
         if sample is not None:
             self.observer.command(sample)
-        else:
-            self.report_input()
+        self.report_input()  # rate-limited: a skipped command, or one that came late
 
     def on_joint_states(self, msg):
         stamp = float(message_time(stamp_to_seconds(msg.header.stamp), now_seconds(self)))
