@@ -339,3 +339,17 @@ def test_lockstep_waits_for_each_frame_to_be_handled_not_only_received():
         finally:
             rig.close()
     np.testing.assert_array_equal(samples[1], samples[0])
+
+
+def test_a_fault_injected_while_the_simulation_lags_the_wall_clock_acts_from_the_wall_clocks_now(rig):
+    """Following the wall clock, the simulation may be behind it (waiting for frames not read
+    yet): a fault injected now must not act on the simulated past, where samples stamped before
+    the injection would already show it."""
+    rig.base.follow_wall_clock()
+    time.sleep(0.05)  # no thread steps it here: the simulation is 50 ms behind
+    rig.base.inject('stuck', 'wheel_joint_fl')
+    assert rig.base.faults == {}
+    rig.base.advance(0.02)
+    assert rig.base.faults == {}
+    rig.base.advance(0.04)
+    assert rig.base.faults == {'wheel_joint_fl': FaultKind.STUCK}

@@ -181,6 +181,7 @@ class VirtualYoubot:
         self._record_history()
         self._faults = {}
         self._frozen = {}
+        self._pending_faults = []  # (simulated time [s], FaultKind, wheel index), in time order
         self.transport = CanTransport(bus, self._on_frame, owns_bus=owns_bus)
         if settings.fault != NO_FAULT:
             self.inject(settings.fault, settings.fault_wheel)
@@ -199,25 +200,36 @@ class VirtualYoubot:
             raise ConfigError(msg) from None
 
     def inject(self, kind, wheel):
-        """Inject a fault on one wheel now (replacing any fault on that wheel)."""
+        """Inject a fault on one wheel now (replacing any fault on that wheel). Following the wall
+        clock, "now" is the wall clock's: a simulation still behind it (waiting for unread
+        frames) takes the fault when it gets there, not earlier."""
         kind = FaultKind(kind)
         if kind not in INJECTABLE:
             msg = f'cannot inject {kind.value!r}'
             raise ConfigError(msg)
         index = self.wheel_index(wheel)
         with self._lock:
-            self._faults[index] = kind
-            module = self.modules[index]
-            if kind is FaultKind.RUNAWAY:
-                self._frozen[index] = ('runaway', module.mode, module.target)
-            elif kind is FaultKind.ENCODER_FREEZE:
-                position, velocity, _ = self._reported()
-                self._frozen[index] = ('encoder', position[index], velocity[index])
-            self._apply_friction()
+            at = self._simulated_time()
+            if at is not None and at > self.time + self.period:
+                self._pending_faults.append((at, kind, index))
+            else:
+                self._apply_fault(kind, index)
+
+    def _apply_fault(self, kind, index):
+        """Inject ``kind`` on wheel ``index`` at the simulation's time (call with the lock held)."""
+        self._faults[index] = kind
+        module = self.modules[index]
+        if kind is FaultKind.RUNAWAY:
+            self._frozen[index] = ('runaway', module.mode, module.target)
+        elif kind is FaultKind.ENCODER_FREEZE:
+            position, velocity, _ = self._reported()
+            self._frozen[index] = ('encoder', position[index], velocity[index])
+        self._apply_friction()
 
     def clear_faults(self):
         """Remove every injected fault."""
         with self._lock:
+            self._pending_faults.clear()
             self._faults.clear()
             self._frozen.clear()
             self._apply_friction()
@@ -501,6 +513,8 @@ class VirtualYoubot:
                 module.sticky_flags |= ErrorFlag.TIMEOUT
 
     def _step(self):
+        while self._pending_faults and self._pending_faults[0][0] <= self.time:
+            self._apply_fault(*self._pending_faults.pop(0)[1:])
         self._check_timeouts()
         setpoints, modes = self._setpoints()
         gain = np.ones(len(self.modules))
