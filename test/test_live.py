@@ -127,6 +127,7 @@ def test_fault_free_demo_raises_no_alarm(run_number):
 
 REACTIONS = {'runaway': 'motor_off', 'stuck': 'stop', 'torque_loss': 'degrade',
              'encoder_freeze': 'substitute', 'friction': 'degrade', 'comm_loss': 'stop'}
+TORQUE_CLASS = {'torque_loss', 'friction'}  # named apart by regression, one reaction
 
 
 def _reacting_demo(plan):
@@ -160,12 +161,16 @@ def test_reactions_act_through_the_topics(fault, wheel):
                     react=True)
     run, stops = in_fresh_process(_reacting_demo, plan)
     assert {e.wheel for e in alarms(run.events)} == {wheel}
-    named = [e for e in alarms(run.events) if e.fault == fault]  # the type may be refined later
+    # The reaction is what is tested here (naming: test_fdi.py). A friction and a torque loss are
+    # both a torque that does not fit the wheel's speed, told apart by which of current or speed
+    # explains it better: in an 8 s drive either name may stand (same reaction, degrade).
+    same = {fault} | (TORQUE_CLASS if fault in TORQUE_CLASS else set())
+    named = [e for e in alarms(run.events) if e.fault in same]  # the type may be refined later
     assert named, f'{fault} never named: {alarms(run.events)}'
     error = named[0]
     # the reaction to that event (a friction first named torque_loss degrades twice: once for
     # each name, each reaction stamped with its own event)
-    reaction = [r for r in run.reactions if r.action == REACTIONS[fault] and r.fault == fault][0]
+    reaction = [r for r in run.reactions if r.action == REACTIONS[fault] and r.fault == error.fault][0]
     assert (reaction.level, reaction.wheel) == ('INFO', wheel)
     assert reaction.stamp == pytest.approx(error.stamp, abs=1e-6)  # the events file rounds to 1 µs
     names = list(SCRIPT_NAMES)
