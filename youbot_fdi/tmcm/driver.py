@@ -154,9 +154,6 @@ class _CycleSlot:
         self.stamps = np.full(n, np.nan)  # each module's sample time on the driver clock [s]
         self.passed = np.zeros(n, dtype=bool)  # modules that answered a later cycle instead
 
-    def complete(self):
-        return bool(np.all(np.isfinite(self.stamps)))
-
     def settled(self, missing):
         """Every module answered or will not: it answered a later cycle, or is ``missing`` (n,)
         bool: it let a cycle's deadline pass and has answered nothing since."""
@@ -288,17 +285,16 @@ class BaseDriver:
                 for k, command in enumerate(commands)]
 
     def cycle(self, now=None):
-        """Close the cycles that waited ``answer_timeout`` (their silent modules get NaN), then
+        """Close the cycles past their deadline or settled (their silent modules get NaN), then
         send one process-data command to every module; returns how many went out."""
         now = self.clock() if now is None else now
         with self._lock:
             self.timing.tick(now)
             timeout = self.settings.answer_timeout
             due = now - timeout - min(self._read_lag, timeout)
-            for slot in [s for s in self._open.values() if s.sent_at <= due]:
-                self._close(slot)
-            for slot in [s for s in self._open.values() if s.settled(self._missing)]:
-                self._close(slot)
+            for slot in list(self._open.values()):  # in cycle order: a deadline marks missing
+                if slot.sent_at <= due or slot.settled(self._missing):
+                    self._close(slot)
             commands = self._module_commands(now)
             self.cycle_count = (self.cycle_count + 1) % CYCLE_MODULO
             cycle = self.cycle_count
