@@ -62,6 +62,9 @@ MIN_CALIBRATED_SPEED = 1e-3
 CALIBRATED_SHARE = 0.95
 #: Commands kept while no joint state arrives (a bound on memory, far above any input delay).
 MAX_PENDING_COMMANDS = 256
+#: Rows the command path's linear scan looks ahead at first, and again after a saturated stretch
+#: (doubling while the loop stays linear): the scan's cost per row grows with log2 of its length.
+SCAN_WINDOW = 64
 #: Per-wheel fields of a prediction, in labelled-vector order (see Prediction.to_labelled).
 WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
                 'commanded_before', 'explained', 'friction', 'unseen_friction')
@@ -487,19 +490,27 @@ class ModelObserver:
             b[pick] = target[pick] @ loop_b.T + friction[pick] @ loop_c.T
         saturable = advancing & velocity_mode
         states = np.empty((rows, 2 * n))
-        state, k = self._command_state, 0
+        state, k, window = self._command_state, 0, SCAN_WINDOW
         while k < rows:
+            # The scan looks ``window`` rows ahead: a saturated row ends the linear stretch and
+            # everything scanned past it is discarded, so a window that keeps every row doubles
+            # and one that saturates starts small again (a whole-block scan per saturated
+            # stretch costs N log N each: quadratic on a drive that saturates often).
             # An unstable loop (gains far off, e.g. a prior's during identify) overflows the
             # linear scan; those rows are saturated and stepped one by one, so the overflow is moot.
+            end = min(rows, k + window)
             with np.errstate(over='ignore', invalid='ignore'):
-                scanned = affine_recursion(a[k:], b[k:], state)
+                scanned = affine_recursion(a[k:end], b[k:end], state)
                 before = np.concatenate([state[None], scanned[:-1]])
-                bad = saturable[k:] & self._saturated(before, scanned, target[k:])
+                bad = saturable[k:end] & self._saturated(before, scanned, target[k:end])
             good = int(np.argmax(bad)) if bad.any() else len(bad)
             states[k:k + good] = scanned[:good]
             k += good
-            if k == rows:
-                break
+            if good == len(bad):  # linear throughout: look further ahead next
+                window *= 2
+                state = scanned[-1]
+                continue
+            window = SCAN_WINDOW
             state = before[good]
             saturated = True
             while saturated and k < rows and saturable[k]:  # one by one until linear again
