@@ -170,3 +170,76 @@ def test_identify_finds_the_roller_friction_ratio_of_a_drive(ratio):
     params, info = fit.parameters, fit.info
     assert params.roller_friction_ratio == pytest.approx(ratio)
     assert info['roller_friction_ratio'] == pytest.approx(ratio)
+
+
+def _youbot_drive(rotate, seconds=12.0, dt=0.01, noise=0.02, seed=3):
+    """Torques of the youBot profile's own dynamics (per-wheel Coulomb friction) on a drive in
+    changing directions, with or without rotation, plus white torque noise [N·m]: (model,
+    RecordingArrays)."""
+    from youbot_fdi.fdi.identify import RecordingArrays
+    model = load_model('youbot')
+    time = np.arange(0.0, seconds, dt)
+    body = np.column_stack([0.4 * np.sin(2.3 * time), 0.3 * np.sin(1.7 * time + 1.0),
+                            (2.0 * np.sin(2.9 * time) if rotate else 0.0 * time)])
+    speeds = body @ model.kinematics.jacobian.T
+    acceleration = np.gradient(speeds, dt, axis=0)
+    dyn = model.dynamics
+    torque = acceleration @ dyn.mass_matrix.T + speeds @ dyn.friction_matrix.T + dyn.coulomb_torque(speeds)
+    torque = torque + np.random.default_rng(seed).normal(0.0, noise, torque.shape)
+    return model, RecordingArrays(time, np.cumsum(speeds, axis=0) * dt, speeds, torque, [])
+
+
+def test_identify_states_uncertainty_and_keeps_what_a_drive_does_not_excite_at_its_prior():
+    """Wheel torques tell two inertia combinations of a base symmetric in x and y apart, the
+    translational ``m |F_x|^2 + J_w`` and the rotational ``J_z |F_z|^2 + J_w`` (F the forward
+    kinematics' rows), never the three parameters: the prior decides the rest.
+
+    A drive without rotation says nothing about J_z: the fit names it not excited and leaves it
+    at the prior with the prior's spread. With rotation, from a prior 30 % off: both combinations
+    come back within 2 %, and each parameter lies within three of its stated standard deviations
+    of the truth (the interval is honest where the data cannot separate them)."""
+    from dataclasses import replace
+    from youbot_fdi.fdi.identify import fit_dynamics
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model.profile import PlatformModel
+    settings = FdiSettings()
+    model, arrays = _youbot_drive(rotate=False)
+    truth = model.dynamics.parameters
+    fit = fit_dynamics(arrays, model, settings)
+    sd, prior_sd = fit.info['uncertainty'], fit.info['prior_sd']
+    assert 'yaw_inertia' in fit.info['unexcited']
+    assert fit.parameters.yaw_inertia == pytest.approx(truth.yaw_inertia, rel=1e-3)
+    assert sd['yaw_inertia'] == pytest.approx(prior_sd['yaw_inertia'], rel=1e-3)
+    assert prior_sd['yaw_inertia'] == pytest.approx(settings.prior_inertia_sd * truth.yaw_inertia)
+
+    model, arrays = _youbot_drive(rotate=True)
+    off = replace(truth, mass=1.3 * truth.mass, yaw_inertia=1.3 * truth.yaw_inertia,
+                  wheel_inertia=tuple(1.3 * w for w in truth.wheel_inertia))
+    fit = fit_dynamics(arrays, PlatformModel(replace(model.profile, dynamics=off)), settings)
+    found, sd = fit.parameters, fit.info['uncertainty']
+    rows = model.kinematics.forward_matrix
+    sideways, turning = float(rows[0] @ rows[0]), float(rows[2] @ rows[2])
+
+    def combinations(p):
+        return (p.mass * sideways + p.wheel_inertia[0], p.yaw_inertia * turning + p.wheel_inertia[0])
+
+    assert combinations(found) == pytest.approx(combinations(truth), rel=0.02)
+    assert abs(found.mass - truth.mass) <= 3.0 * sd['mass']
+    assert abs(found.yaw_inertia - truth.yaw_inertia) <= 3.0 * sd['yaw_inertia']
+    assert abs(found.wheel_inertia[0] - truth.wheel_inertia[0]) <= 3.0 * sd['wheel_inertia']
+
+
+def test_correlation_inflation_is_one_for_white_noise_and_follows_an_ar1_process():
+    """White residuals hold as many independent samples as rows (inflation ~1); an AR(1) with
+    coefficient a holds (1 - a) / (1 + a) as many, the long-run variance ratio, up to the
+    Bartlett weights' taper over the lags counted."""
+    from youbot_fdi.fdi.identify import correlation_inflation
+    rng = np.random.default_rng(0)
+    white = rng.normal(size=(20000, 2))
+    assert correlation_inflation(white, 40) == pytest.approx(1.0, abs=0.1)
+    a, lags = 0.5, 200
+    ar = scipy.signal.lfilter([1.0], [1.0, -a], rng.normal(size=(40000, 2)), axis=0)
+    rho = a ** np.arange(1, lags + 1)
+    expected = 1.0 + 2.0 * np.sum((1.0 - np.arange(1, lags + 1) / (lags + 1.0)) * rho)
+    assert (1.0 + a) / (1.0 - a) == pytest.approx(3.0)
+    assert correlation_inflation(ar, lags) == pytest.approx(expected, rel=0.1)

@@ -40,6 +40,9 @@ RATES = (20.0, 25.0, 50.0, 100.0, 125.0, 200.0, 250.0, 500.0)  # [Hz]
 MAX_WHEEL_SPEED = 12.0  # [rad/s] no drive asks a wheel for more
 START_STAMP = 1_760_000_000.0  # [s]
 PROFILE = 'youbot'
+#: Identification against truth: a stated value ± this many standard deviations should hold the
+#: truth in 95 % of plants if the deviations are honest.
+INTERVAL_SDS = 2.0
 
 
 # ---------------------------------------------------------------------- plants and drives
@@ -198,11 +201,58 @@ def _write(job):
 
 
 def _calibrate(job):
+    """``identify`` on plant ``index``'s nominal drive: (index, parameter files, what it found:
+    {parameter: (value, standard deviation)} and the names it called not excited)."""
     from youbot_fdi.bench.calibration import calibrate
     from youbot_fdi.model.profile import load_model
     index, path, directory = job
-    params, _ = calibrate(path, load_model(PROFILE), Path(directory) / f'params{index:03d}')
-    return index, params
+    params, result = calibrate(path, load_model(PROFILE), Path(directory) / f'params{index:03d}')
+    dynamics, sd = result.profile.dynamics, result.info.get('uncertainty', {})
+    values = {'mass': dynamics.mass, 'yaw_inertia': dynamics.yaw_inertia,
+              'wheel_inertia': dynamics.wheel_inertia[0],
+              **{f'viscous_friction[{j}]': v for j, v in enumerate(dynamics.viscous_friction)}}
+    found = {name: (float(value), float(sd.get(name, math.nan))) for name, value in values.items()}
+    return index, params, {'found': found, 'unexcited': list(result.info.get('unexcited', []))}
+
+
+def truth_of(params, index):
+    """Plant ``index``'s values in the FDI's terms: {parameter: value}. The FDI reads torque as
+    current x the datasheet's constant, which is the true torque over ``torque_scale``, so every
+    parameter it fits from torque is the plant's over that scale. The plant's wheel inertia
+    includes the rotor's; its bearing friction is the FDI's viscous friction (Coulomb friction
+    is not compared: the plant's rolling resistance and roller drag add load-dependent terms the
+    FDI's per-wheel Coulomb friction lumps together)."""
+    scale = float(params.torque_scale[index])
+    return {'mass': float(params.mass[index]) / scale,
+            'yaw_inertia': float(params.yaw_inertia[index]) / scale,
+            'wheel_inertia': float(params.wheel_inertia[index]) / scale,
+            **{f'viscous_friction[{j}]': float(v) / scale for j, v in enumerate(params.viscous[index])}}
+
+
+def identification_table(params, identified):
+    """Identification against the plants' truth (issue 34): per parameter, the median and 90th
+    percentile of |error| [%], the share of plants whose truth lies inside the stated
+    value ± 2 standard deviations (a 95 % interval if the deviations are honest), and the plants
+    that named it not excited."""
+    rows = {}
+    for index, result in identified.items():
+        truth = truth_of(params, index)
+        for name, (value, sd) in result['found'].items():
+            family = name.split('[')[0]
+            error = (value - truth[name]) / truth[name]
+            inside = abs(value - truth[name]) <= INTERVAL_SDS * sd
+            excited = name not in result['unexcited']
+            rows.setdefault(family, []).append((abs(error), inside, excited))
+    lines = [f'Identification against truth ({len(identified)} plants, each from its own nominal '
+             f'drive; Coulomb friction not compared: the plant\'s is not the FDI\'s law)',
+             f'  {"parameter":<18}{"median |err|":>13}{"p90 |err|":>11}{"inside ±2 sd":>14}'
+             f'{"not excited":>13}']
+    for family, values in rows.items():
+        error = np.array([v[0] for v in values])
+        lines.append(f'  {family:<18}{100 * np.median(error):>12.1f}%{100 * np.percentile(error, 90):>10.1f}%'
+                     f'{np.mean([v[1] for v in values]):>14.0%}{sum(not v[2] for v in values):>9}/'
+                     f'{len(values)}')
+    return '\n'.join(lines)
 
 
 def _replay(job):
@@ -217,7 +267,7 @@ def _replay(job):
 def run_suite(workdir, progress=print, workers=2, seed=0, plants=PLANTS,
               fault_free_runs=FAULT_FREE_RUNS):
     """Draw, simulate, calibrate and replay the suite; returns (plant parameters, [(Run, result
-    dict)])."""
+    dict)], {plant: what identify found (:func:`_calibrate`)})."""
     from concurrent.futures import ProcessPoolExecutor
     from youbot_fdi.model.profile import load_model
     rng = np.random.default_rng(seed)
@@ -250,11 +300,12 @@ def run_suite(workdir, progress=print, workers=2, seed=0, plants=PLANTS,
                                 conditions=tuple(styles[p]) + conditions_of(drive)))
         calibration = [r for r in runs if r.kind == 'calibration']
         progress(f'randomized: identify on each plant\'s nominal drive ({plants}) ...')
-        identified = dict(pool.map(_calibrate, [(r.plant, r.path, str(workdir)) for r in calibration]))
+        calibrated = list(pool.map(_calibrate, [(r.plant, r.path, str(workdir)) for r in calibration]))
+        identified = {index: files for index, files, _ in calibrated}
         judged = [r for r in runs if r.kind != 'calibration']
         progress(f'randomized: {len(judged)} replays ...')
         scored = list(pool.map(_replay, [(r, identified[r.plant]) for r in judged], chunksize=8))
-    return params, scored
+    return params, scored, {index: found for index, _, found in calibrated}
 
 
 # ---------------------------------------------------------------------- the printed report

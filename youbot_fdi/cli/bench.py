@@ -104,8 +104,9 @@ def run_faults(args, progress):
                           folds[0].calibration['spread']) for v in VARIANTS]
         if 'randomized' in suites:
             from youbot_fdi.bench import randomized
-            plants, scored = randomized.run_suite(workdir, progress, args.workers, args.seed,
-                                                  args.plants)
+            plants, scored, identified = randomized.run_suite(workdir, progress, args.workers,
+                                                              args.seed, args.plants)
             print('\n' + randomized.summarise(plants, scored), flush=True)
+            print('\n' + randomized.identification_table(plants, identified), flush=True)
     print('\n' + ablation(rows), flush=True)
     return 0

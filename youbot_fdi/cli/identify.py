@@ -54,20 +54,37 @@ def run(args):
     if result.damage is not None:
         print(f'{args.bag}: {result.damage.describe()}', file=sys.stderr)
     print(f'{args.bag}: {result.info["samples"]} samples over {result.info["duration_s"]:.1f} s')
-    print(f'  mass {dyn.mass:.3g} kg, J_z {dyn.yaw_inertia:.3g} kg·m², J_w {dyn.wheel_inertia[0]:.3g} kg·m²'
+    sd = result.info.get('uncertainty', {})
+
+    def value(name, number, digits='.3g'):
+        """``number`` with its standard deviation (± 1 sd) where the fit states one."""
+        return f'{number:{digits}}' + (f' ± {sd[name]:{digits}}' if name in sd else '')
+
+    n = len(dyn.viscous_friction)
+    print(f'  mass {value("mass", dyn.mass)} kg, J_z {value("yaw_inertia", dyn.yaw_inertia)} kg·m², '
+          f'J_w {value("wheel_inertia", dyn.wheel_inertia[0])} kg·m²'
           f'  (torque fit R² {result.info["torque_fit_r_squared"]:.4f})')
-    print('  viscous friction D [N·m·s/rad]: ' + ', '.join(f'{v:.4f}' for v in dyn.viscous_friction))
-    print('  Coulomb friction [N·m]: ' + ', '.join(f'{v:.4f}' for v in dyn.coulomb_friction)
+    print('  viscous friction D [N·m·s/rad]: '
+          + ', '.join(value(f'viscous_friction[{j}]', dyn.viscous_friction[j], '.4f') for j in range(n)))
+    print('  Coulomb friction [N·m]: '
+          + ', '.join(value(f'coulomb_friction[{j}]', dyn.coulomb_friction[j], '.4f') for j in range(n))
           + (f'; contact law, roller friction ratio {dyn.roller_friction_ratio:g}, calibrated down to a '
              f'rolling share of {result.fdi.get("contact_share_floor", 0.0):.2f}'
              if dyn.roller_friction_ratio > 0 else '; per wheel (no contact law)'))
+    unexcited = result.info.get('unexcited')
+    if unexcited:
+        print(f'  not excited by this recording (the data narrow them to no less than '
+              f'{settings.excitation_share:.0%} of their prior spread): {", ".join(unexcited)}; '
+              'kept near the prior profile\'s values')
     print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
           f'ki {profile.firmware.velocity_ki:.3g} A/rad')
     if 'input_delay' in result.fdi:
         print(f'  input delay (commands to wheels): {1000 * result.fdi["input_delay"]:.1f} ms')
-    best = result.sweep[0][int(np.argmin(result.sweep[1]))]
-    print(f'  friction sweep (report Fig. 5.10): best D = {best:.3f} on the grid '
-          f'{result.sweep[0][0]:.3f}..{result.sweep[0][-1]:.3f}')
+    best_at = int(np.argmin(result.sweep[1]))
+    best = result.sweep[0][best_at]
+    edge = ' (at its edge)' if best_at in (0, len(result.sweep[0]) - 1) else ''
+    print(f'  friction sweep (report Fig. 5.10): best D = {best:.4f} on the grid '
+          f'{result.sweep[0][0]:.4f}..{result.sweep[0][-1]:.4f}{edge}')
     names = ', '.join(f'{v:.2%}' for v in result.nrmse_currents)
     print(f'  NRMSE per wheel, predicted from currents: {names}')
     if result.nrmse_commands is not None:

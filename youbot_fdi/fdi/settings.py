@@ -117,6 +117,12 @@ class FdiSettings:
     # identify: bounds = bound_margin * the bound_quantile of |r| on the nominal recording
     bound_quantile: float = 0.99
     bound_margin: float = 1.25
+    # identify: the prior profile's dynamics as a Gaussian prior, each parameter's standard
+    # deviation this share of its value [-]; a parameter is excited by a recording where the data
+    # shrink its deviation below excitation_share of the prior's [-]
+    prior_inertia_sd: float = 0.5
+    prior_friction_sd: float = 1.0
+    excitation_share: float = 0.5
     classification_window: float = 0.5  # data used to name the fault type [s]
     # the event lifecycle (youbot_fdi/fdi/lifecycle.py): an alarm is published once it stood
     # confirm_time, OK once it has been gone heal_time; no two events of a component within dwell

@@ -1,0 +1,37 @@
+"""Identification's search helpers, against hand-derived answers."""
+import numpy as np
+import pytest
+
+from youbot_fdi.fdi.identify import (_descend, for_search, RecordingArrays, SEARCH_SECONDS,
+                                     SEARCH_WINDOWS)
+
+
+def test_delay_refit_walks_downhill_from_the_delay_found_before_and_stops_at_the_minimum():
+    """Errors (d - 7)^2 on a grid 0..19: from 3 the walk goes up the grid to 7 and tries 8
+    (worse); back down, 6 is already known worse: nothing else is tried."""
+    grid = np.arange(20.0)
+    tried = []
+
+    def error(d):
+        tried.append(d)
+        return (d - 7.0) ** 2
+
+    best, errors = _descend(error, grid, 3, np.full(len(grid), np.nan))
+    assert best == 7.0
+    assert sorted(tried) == [3.0, 4.0, 5.0, 6.0, 7.0, 8.0]  # 6 is known worse than 7: not again
+    assert np.isnan(errors[9:]).all() and np.isnan(errors[:3]).all()
+
+
+def test_the_searches_see_at_most_search_seconds_in_windows_over_the_whole_recording():
+    """A 300 s recording at 100 Hz: the searches get SEARCH_SECONDS of it, in SEARCH_WINDOWS
+    windows, the first at its start and the last ending at its end; a short one is kept whole."""
+    time = np.arange(0.0, 300.0, 0.01)
+    ones = np.ones((len(time), 4))
+    arrays = RecordingArrays(time, ones, ones, ones, [])
+    searched = for_search(arrays)
+    assert len(searched.time) == pytest.approx(SEARCH_SECONDS / 0.01, rel=0.01)
+    jumps = np.flatnonzero(np.diff(searched.time) > 0.02)
+    assert len(jumps) == SEARCH_WINDOWS - 1
+    assert searched.time[0] == 0.0 and searched.time[-1] == pytest.approx(time[-1], abs=0.011)
+    short = RecordingArrays(time[:2000], ones[:2000], ones[:2000], ones[:2000], [])
+    assert len(for_search(short).time) == 2000
