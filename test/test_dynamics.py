@@ -243,3 +243,27 @@ def test_correlation_inflation_is_one_for_white_noise_and_follows_an_ar1_process
     expected = 1.0 + 2.0 * np.sum((1.0 - np.arange(1, lags + 1) / (lags + 1.0)) * rho)
     assert (1.0 + a) / (1.0 - a) == pytest.approx(3.0)
     assert correlation_inflation(ar, lags) == pytest.approx(expected, rel=0.1)
+
+
+def test_stated_deviation_grows_where_the_recording_disagrees_with_itself():
+    """The same drive, once as the model says and once with the viscous friction doubled halfway
+    (a model that misses: no single D explains it). Consistent: the block jackknife (the fit's
+    spread with each tenth of the recording left out) adds little to the noise's 10^-4. Changed:
+    the residual's autocorrelation inflates the noise, the jackknife more (about 2x), and the
+    stated deviation, a hundred times the consistent one, puts every wheel's D within two of
+    it from the halves' mean 0.0525."""
+    from dataclasses import replace
+    from youbot_fdi.fdi.identify import fit_dynamics
+    model, arrays = _youbot_drive(rotate=True)
+    fit = fit_dynamics(arrays, model)
+    consistent = fit.info['uncertainty']['viscous_friction[0]']
+    assert consistent < 3.0 * fit.info['uncertainty_noise']['viscous_friction[0]']
+    torque = arrays.torque.copy()
+    half = len(torque) // 2
+    torque[half:] += arrays.velocity[half:] * 0.035  # D doubles halfway [N·m·s/rad]
+    changed = fit_dynamics(replace(arrays, torque=torque), model)
+    for j, value in enumerate(changed.parameters.viscous_friction):
+        stated = changed.info['uncertainty'][f'viscous_friction[{j}]']
+        assert stated >= changed.info['uncertainty_noise'][f'viscous_friction[{j}]']
+        assert stated > 50.0 * consistent
+        assert abs(value - 0.0525) <= 2.0 * stated

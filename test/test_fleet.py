@@ -128,3 +128,26 @@ sys.exit(main(['fleet', sys.argv[1], '--output', sys.argv[2]]))
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 1
     assert 'pip install "youbot_fdi[fleet]"' in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_the_trend_calls_a_change_only_where_the_stated_intervals_separate():
+    """Friction rising 0.1 -> 0.145 over ten days (4.5 % a day of 0.1, every point on the line):
+    with stated deviations of 0.002 the first and last intervals (± 2 sd) lie far apart and the
+    wheel is flagged; with deviations of 0.02 they overlap (0.1 ± 0.04 against 0.145 ± 0.04) and
+    it is not, though the line is exact. Noise ten times its stated deviation (0.02 scatter,
+    0.002 stated) is not flagged either: the scatter widens the slope's error (Birge ratio)."""
+    import numpy as np
+    from youbot_fdi.fleet.settings import FleetSettings
+    from youbot_fdi.fleet.trend import friction_trends
+    rng = np.random.default_rng(1)
+    rows = []
+    for day in range(10):
+        rows.append({'robot': 'r', 'start': DEFAULT_START_STAMP + day * DAY, 'wheels': ['narrow', 'wide', 'noisy'],
+                     'friction': [0.1 + 0.005 * day, 0.1 + 0.005 * day, 0.1 + rng.normal(scale=0.02)],
+                     'friction_sd': [0.002, 0.02, 0.002]})
+    trends = {t.wheel: t for t in friction_trends(rows, FleetSettings())}
+    assert trends['narrow'].flagged
+    assert trends['narrow'].rate == pytest.approx(0.005 / 0.1225)
+    assert trends['wide'].rate == pytest.approx(trends['narrow'].rate)
+    assert not trends['wide'].flagged
+    assert not trends['noisy'].flagged

@@ -14,18 +14,18 @@ def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMA
     far as it can be read); speeds, positions and efforts in the model's convention (drive signs
     applied)."""
     signs = model.kinematics.drive_signs
-    rows, commands = [], []
+    blocks, commands = [], []
     with RecordingReader(path, model.wheel_names, joint_topic, command_topic) as reader:
-        for sample in reader.samples():
-            if hasattr(sample, 'kind'):
-                commands.append(sample)
-            else:
-                rows.append((sample.stamp, signs * sample.position, signs * sample.velocity,
-                             signs * sample.effort))
+        for chunk in reader.chunks():  # whole blocks: a Python object per sample costs more
+            blocks.append(chunk.joints)
+            commands.extend(chunk.commands.sample(k) for k in range(len(chunk.commands)))
         damage = reader.damage
-    require_samples(len(rows), str(path))
-    rows.sort(key=lambda r: r[0])
-    joints = JointBatch(*(np.array([r[k] for r in rows]) for k in range(4)))
+    count = sum(len(b) for b in blocks)
+    require_samples(count, str(path))
+    stamp = np.concatenate([b.stamp for b in blocks])
+    order = np.argsort(stamp, kind='stable')
+    joints = JointBatch(stamp[order], *(signs * np.concatenate([getattr(b, f) for b in blocks])[order]
+                                        for f in ('position', 'velocity', 'effort')))
     joints = joints.select(RepeatedMessages().fresh(joints))  # re-sent messages carry nothing
     return RecordingArrays(joints.stamp, joints.position, joints.velocity, joints.effort, commands, damage)
 

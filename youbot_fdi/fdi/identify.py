@@ -32,6 +32,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+import scipy.linalg
 import scipy.optimize
 import scipy.signal
 
@@ -53,6 +54,8 @@ NOISE_PROBE = 1e-3
 #: Rows of residual autocorrelation the fit's covariance counts (correlation_inflation): the
 #: Savitzky-Golay window's reach several times over.
 INFLATION_LAGS = 8 * SAVGOL_WINDOW
+#: Consecutive stretches of a recording the dynamics fit's jackknife leaves out one at a time.
+JACKKNIFE_BLOCKS = 10
 #: The report's friction sweep (Fig. 5.10) on a grid of these multiples of the fitted mean viscous
 #: friction (the report's fixed 0.010-0.045 N·m·s/rad put the optimum at its edge on robots
 #: whose friction lies outside it) [-]
@@ -253,13 +256,45 @@ def _solve_dynamics(design, target, model, n, settings):
     lower = np.zeros(design.shape[1])
     lower[:3] = 1e-9
     column_scale = np.linalg.norm(design, axis=0) + 1e-12
+    scaled = design / column_scale  # unknowns scaled by the column norms (conditioning)
+    gram, moment = scaled.T @ scaled, scaled.T @ target  # the data's normal equations, once
+
+    def normal_equations(noise, data_gram=gram, data_moment=moment):
+        # The prior's rows are weighted noise / spread, so both kinds of row are in units of
+        # the noise; least squares over the data and prior rows by their normal equations.
+        prior_row = noise / (spread * column_scale)
+        return (data_gram + np.diag(prior_row ** 2),
+                data_moment + prior_row * (noise * values / spread))
 
     def solve(noise):
-        # Unknowns scaled by the column norms (conditioning); the prior's rows are weighted
-        # noise / spread, so both kinds of row are in units of the noise.
-        system = np.vstack([design / column_scale, np.diag(noise / (spread * column_scale))])
-        rhs = np.concatenate([target, noise * values / spread])
-        return scipy.optimize.lsq_linear(system, rhs, bounds=(lower * column_scale, np.inf)).x / column_scale
+        normal, rhs = normal_equations(noise)
+        factor = np.linalg.cholesky(normal)
+        free = scipy.linalg.cho_solve((factor, True), rhs)
+        # The unconstrained optimum where it is feasible (with a prior, nearly always) is the
+        # bounded one; else the bounded problem on the Cholesky factor (k x k, same minimiser).
+        if np.all(free >= lower * column_scale):
+            return free / column_scale
+        reduced = scipy.linalg.solve_triangular(factor, rhs, lower=True)
+        return scipy.optimize.lsq_linear(factor.T, reduced,
+                                         bounds=(lower * column_scale, np.inf)).x / column_scale
+
+    def jackknife(noise):
+        """The delete-a-block jackknife's standard deviation of the (unbounded) fit: the
+        recording in JACKKNIFE_BLOCKS consecutive stretches of time, the fit without each (the
+        whole fit's normal equations less that block's), sqrt((B - 1) / B sum (p_b - mean)^2).
+        Where the model misses (a friction law unlike the plant's, a bias that changes with
+        speed) the recording's parts disagree by more than the noise says."""
+        rows = len(target) // n
+        blocks = min(JACKKNIFE_BLOCKS, rows)
+        edges = np.linspace(0, rows, blocks + 1).astype(int) * n
+        fits = []
+        for start, stop in zip(edges[:-1], edges[1:]):
+            part = scaled[start:stop]
+            normal, rhs = normal_equations(noise, gram - part.T @ part,
+                                           moment - part.T @ target[start:stop])
+            fits.append(np.linalg.solve(normal, rhs) / column_scale)
+        fits = np.array(fits)
+        return np.sqrt((blocks - 1) / blocks * np.sum((fits - fits.mean(axis=0)) ** 2, axis=0))
 
     rough = design @ solve(NOISE_PROBE * max(float(np.std(target)), 1e-12))
     residual = (target - rough).reshape(-1, n)
@@ -268,10 +303,13 @@ def _solve_dynamics(design, target, model, n, settings):
     solution = solve(noise)
     fitted = design @ solution
     information = design.T @ design / noise ** 2 + np.diag(1.0 / spread ** 2)
-    deviation = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
+    posterior = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
     names = parameter_names(n)
-    unexcited = [name for name, sd, wide in zip(names, deviation, spread)
+    # Excitation is what the data can tell (the posterior); the stated deviation is at least
+    # what the recording's parts disagree by, too (a model that misses, not noise).
+    unexcited = [name for name, sd, wide in zip(names, posterior, spread)
                  if sd > settings.excitation_share * wide]
+    deviation = np.maximum(posterior, jackknife(noise))
     r_squared = 1.0 - np.sum((target - fitted) ** 2) / max(np.sum((target - target.mean()) ** 2), 1e-12)
     params = replace(prior, mass=float(solution[0]), yaw_inertia=float(solution[1]),
                      wheel_inertia=(float(solution[2]),) * n,
@@ -279,6 +317,7 @@ def _solve_dynamics(design, target, model, n, settings):
                      coulomb_friction=tuple(float(v) for v in solution[3 + n:3 + 2 * n]))
     info = {'torque_fit_r_squared': float(r_squared),
             'uncertainty': {name: float(sd) for name, sd in zip(names, deviation)},
+            'uncertainty_noise': {name: float(sd) for name, sd in zip(names, posterior)},
             'prior_sd': {name: float(sd) for name, sd in zip(names, spread)},
             'unexcited': unexcited, 'correlation_inflation': float(inflation)}
     return params, info, fitted

@@ -75,7 +75,8 @@ def analyse(recording, params_path, output, fault_free_margin):
     output = Path(output)
     row = {'recording': recording.name, 'robot': recording.robot, 'path': recording.path,
            'start': math.nan, 'duration_s': math.nan, 'samples': 0, 'faults': {},
-           'friction': [], 'mass': math.nan, 'status': 'ok', 'error': ''}
+           'friction': [], 'friction_sd': [], 'mass': math.nan, 'mass_sd': math.nan,
+           'status': 'ok', 'error': ''}
     try:
         model, pipeline = build_pipeline(params_path)
         row['wheels'] = list(model.wheel_names)
@@ -91,10 +92,12 @@ def analyse(recording, params_path, output, fault_free_margin):
         if result.damage is not None and result.damage.lost:
             row['status'], row['error'] = 'damaged', result.damage.describe()
         first_alarm = min((e.stamp for e in result.events if e.level == Level.ERROR), default=math.inf)
-        row.update(_identify_friction(recording.path, model, first_alarm - fault_free_margin))
+        row.update(_identify_friction(recording.path, model, first_alarm - fault_free_margin,
+                                      pipeline.settings))
     except Exception as err:  # noqa: BLE001 - one recording's failure is its row, never the run's
         row['status'], row['error'] = 'error', f'{type(err).__name__}: {err}'
     row['friction'] = [float(v) for v in np.asarray(row['friction'], dtype=float)]
+    row['friction_sd'] = [float(v) for v in np.asarray(row['friction_sd'], dtype=float)]
     rows = output / 'rows'
     rows.mkdir(parents=True, exist_ok=True)
     temporary = rows / f'.{recording.name}.json'
@@ -103,24 +106,30 @@ def analyse(recording, params_path, output, fault_free_margin):
     return row
 
 
-def _identify_friction(path, model, until):
-    """Start, duration and the identified viscous friction per wheel [N·m·s/rad] and mass [kg]
-    from the samples before ``until`` [s] (NaN when too few or no effort recorded)."""
+def _identify_friction(path, model, until, settings):
+    """Start, duration and the identified viscous friction per wheel [N·m·s/rad] and mass [kg],
+    each with its standard deviation (``friction_sd``, ``mass_sd``; the model as the prior,
+    ``settings`` its spread), from the samples before ``until`` [s] (NaN when too few or no
+    effort recorded)."""
     from youbot_fdi.app.recordings import read_arrays
     from youbot_fdi.fdi.identify import fit_dynamics, IdentificationError, MIN_SAMPLES, RecordingArrays
     arrays = read_arrays(path, model)
     found = {'start': float(arrays.time[0]), 'duration_s': float(arrays.time[-1] - arrays.time[0]),
-             'friction': [math.nan] * model.dynamics.n_wheels}
+             'friction': [math.nan] * model.dynamics.n_wheels,
+             'friction_sd': [math.nan] * model.dynamics.n_wheels}
     keep = arrays.time < until
     if keep.sum() < MIN_SAMPLES:
         return found
     clean = RecordingArrays(arrays.time[keep], arrays.position[keep], arrays.velocity[keep],
                             arrays.torque[keep], [c for c in arrays.commands if c.stamp < until])
     try:
-        dynamics = fit_dynamics(clean, model).parameters
+        fit = fit_dynamics(clean, model, settings)
     except IdentificationError:
         return found
-    found.update(friction=list(dynamics.viscous_friction), mass=float(dynamics.mass))
+    sd, n = fit.info['uncertainty'], model.dynamics.n_wheels
+    found.update(friction=list(fit.parameters.viscous_friction), mass=float(fit.parameters.mass),
+                 friction_sd=[sd[f'viscous_friction[{j}]'] for j in range(n)], mass_sd=sd['mass'],
+                 unexcited=list(fit.info['unexcited']))
     return found
 
 

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 
 from youbot_fdi.app.report import pyplot
-from youbot_fdi.fleet.trend import SECONDS_PER_DAY
+from youbot_fdi.fleet.trend import INTERVAL_SDS, SECONDS_PER_DAY
 
 CSV_NAME = 'recordings.csv'
 HTML_NAME = 'report.html'
@@ -21,19 +21,24 @@ def _when(stamp):
 
 def write_csv(rows, path):
     """One line per recording: robot, start (UTC), duration, samples, faults by type and wheel,
-    identified friction per wheel, status and error."""
+    identified friction per wheel and mass, each with its standard deviation, status and error."""
     wheels = max((r.get('wheels') or [] for r in rows), key=len, default=[])
     columns = (['recording', 'robot', 'start', 'duration_s', 'samples', 'faults', 'faults_total']
-               + [f'friction_{w}' for w in wheels] + ['mass', 'status', 'error'])
+               + [f'friction_{w}' for w in wheels] + [f'friction_sd_{w}' for w in wheels]
+               + ['mass', 'mass_sd', 'status', 'error'])
     with open(path, 'w', newline='', encoding='utf-8') as handle:
         writer = csv.writer(handle)
         writer.writerow(columns)
         for r in sorted(rows, key=lambda r: (r['robot'], r['start'] if math.isfinite(r['start']) else 0.0)):
             friction = list(r['friction']) + [math.nan] * (len(wheels) - len(r['friction']))
+            spread = list(r.get('friction_sd', []))
+            spread += [math.nan] * (len(wheels) - len(spread))
             writer.writerow([r['recording'], r['robot'], _when(r['start']), _number(r['duration_s']),
                              r['samples'], ';'.join(f'{k}:{v}' for k, v in sorted(r['faults'].items())),
                              sum(r['faults'].values())] + [_number(f) for f in friction]
-                            + [_number(r.get('mass', math.nan)), r['status'], r['error']])
+                            + [_number(f) for f in spread]
+                            + [_number(r.get('mass', math.nan)), _number(r.get('mass_sd', math.nan)),
+                               r['status'], r['error']])
     return path
 
 
@@ -113,11 +118,15 @@ def _figures(rows, trends, directory):
         for w, wheel in enumerate(mine[0]['wheels'] if mine else []):
             days = [(r['start'] - origin) / SECONDS_PER_DAY for r in mine]
             friction = [r['friction'][w] if len(r['friction']) > w else math.nan for r in mine]
+            spread = [INTERVAL_SDS * r['friction_sd'][w] if len(r.get('friction_sd', [])) > w
+                      else math.nan for r in mine]
             trend = by_key.get((robot, wheel))
             label = wheel + (f' ({trend.rate:+.1%}/day{", FLAGGED" if trend.flagged else ""})'
                              if trend else '')
-            ax.plot(days, friction, 'o-', label=label, lw=2.5 if trend and trend.flagged else 1)
-        ax.set(xlabel='days since the first recording', ylabel='viscous friction [N·m·s/rad]',
+            ax.errorbar(days, friction, yerr=spread, fmt='o-', capsize=3, label=label,
+                        lw=2.5 if trend and trend.flagged else 1)
+        ax.set(xlabel='days since the first recording',
+               ylabel=f'viscous friction [N·m·s/rad], ±{INTERVAL_SDS:g} sd',
                title=f'{robot}: friction per wheel')
         ax.legend(fontsize=7)
     fig.savefig(directory / 'friction.png', dpi=100)
