@@ -1,19 +1,20 @@
 """Identify the model's parameters from a nominal recording (either control mode).
 
-1. **Dynamics by linear least squares.** ``tau = M(m, J_z, J_w) a + D w + F_c tanh(w / v_s) s_k`` is
-   linear in (m, J_z, J_w, D_i, F_c,i) because M = m P_xy + J_z P_z + J_w I; the contact law's
-   rolling share s_k (model/dynamics.py, ``roller_friction_ratio`` k) is searched on a grid, a
-   linear fit each. Speeds are
-   differentiated and torques smoothed with the same Savitzky-Golay filter; parameters are bounded
-   (>= 0) and pulled gently towards the prior profile where the drive does not excite them (a drive
-   without rotation says nothing about J_z).
+1. **Dynamics by Bayesian linear least squares.** ``tau = M(m, J_z, J_w) a + D w + F_c tanh(w / v_s)
+   s_k`` is linear in (m, J_z, J_w, D_i, F_c,i) because M = m P_xy + J_z P_z + J_w I; the contact
+   law's rolling share s_k (model/dynamics.py, ``roller_friction_ratio`` k) is searched on a grid,
+   a linear fit each. Speeds are differentiated and torques smoothed with the same Savitzky-Golay
+   filter (rows whose window spans a gap left out); the prior profile is a Gaussian prior, each
+   parameter gets a standard deviation (posterior covariance, at least the block jackknife's),
+   and the ones the recording does not excite are named and stay at the prior (a drive without
+   rotation says nothing about J_z).
 2. **The report's friction sweep** (Fig. 5.10): the open-loop model driven by the measured currents
-   for D on a grid, RMSE against the measured speeds.
+   for D on a grid around the fitted one, RMSE against the measured speeds.
 3. **Firmware PI gains and input delay.** Velocity-mode recordings: the command-path prediction
-   fitted to the measured speeds: the delay on a 2.5 ms grid (the prediction is not smooth in it)
-   and Nelder-Mead on log gains, alternated (a slower loop mimics a late one). Current-mode
-   recordings: the delay that best matches the measured to the commanded effort. The FDI
-   predicts with the delay (``input_delay``).
+   fitted to the measured speeds over at most SEARCH_SECONDS of the recording: the delay on a
+   2.5 ms grid (the prediction is not smooth in it), Nelder-Mead on log gains, the delay again
+   (a slower loop mimics a late one). Current-mode recordings: the delay that best matches the
+   measured to the commanded effort. The FDI predicts with the delay (``input_delay``).
 4. **Fit quality**: NRMSE per wheel (RMSE / range of the measured speed) of the current-driven and
    the command-driven predictions, to test the report's "< 1 %" claim.
 5. **Bounds** as functions of the operating point: the residual generator run over the recording
@@ -56,6 +57,8 @@ NOISE_PROBE = 1e-3
 INFLATION_LAGS = 8 * SAVGOL_WINDOW
 #: Consecutive stretches of a recording the dynamics fit's jackknife leaves out one at a time.
 JACKKNIFE_BLOCKS = 10
+#: An interval longer than this many median intervals is a gap (a missed sample or more) [-].
+UNEVEN_INTERVAL = 1.5
 #: The report's friction sweep (Fig. 5.10) on a grid of these multiples of the fitted mean viscous
 #: friction (the report's fixed 0.010-0.045 N·m·s/rad put the optimum at its edge on robots
 #: whose friction lies outside it) [-]
@@ -137,6 +140,19 @@ def _smooth(values, dt, deriv=0):
     return scipy.signal.savgol_filter(values, window, SAVGOL_ORDER, deriv=deriv, delta=dt, axis=0)
 
 
+def evenly_sampled(time, interval):
+    """Rows (k,) bool whose Savitzky-Golay window holds no interval longer than
+    :data:`UNEVEN_INTERVAL` times the median ``interval`` [s]: the filter takes its rows as evenly
+    spaced, so a window across a gap (a recording's pause, runs joined, a logger's stall) mixes
+    speeds seconds apart into one "acceleration". Such rows are left out of the dynamics fit."""
+    long = np.diff(time) > UNEVEN_INTERVAL * interval  # interval i lies between rows i and i + 1
+    half = SAVGOL_WINDOW // 2
+    # Row r's window spans intervals r - half .. r + half - 1.
+    counts = np.convolve(np.concatenate([np.zeros(half), long, np.zeros(half)]),
+                         np.ones(2 * half), mode='valid')
+    return counts[:len(time)] == 0
+
+
 class DynamicsFit(NamedTuple):
     """What :func:`fit_dynamics` found."""
 
@@ -159,6 +175,9 @@ def fit_dynamics(arrays, model, settings=None):
     dt = float(np.median(np.diff(arrays.time)))
     acceleration = _smooth(arrays.velocity, dt, deriv=1)
     speed, torque = _smooth(arrays.velocity, dt), _smooth(arrays.torque, dt)
+    keep = evenly_sampled(arrays.time, dt)
+    if keep.sum() >= MIN_SAMPLES:
+        acceleration, speed, torque = acceleration[keep], speed[keep], torque[keep]
     forward = model.kinematics.forward_matrix
     p_xy = forward.T @ np.diag([1.0, 1.0, 0.0]) @ forward
     p_z = forward.T @ np.diag([0.0, 0.0, 1.0]) @ forward
@@ -346,10 +365,12 @@ def run_generator(model, arrays, settings):
                                   np.searchsorted(command_batch.stamp, arrays.time, side='right'))
 
 
-def simulate_from_commands(model, arrays, input_delay=0.0):
+def simulate_from_commands(model, arrays, input_delay=0.0, batch=None):
     """Wheel speeds predicted from the commands through the firmware loop (§5.2.3), the commands
-    acting ``input_delay`` [s] after their stamps."""
-    batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
+    acting ``input_delay`` [s] after their stamps; from ``batch`` (the generator already run over
+    ``arrays`` with that delay) where given."""
+    if batch is None:
+        batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
     predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
     predicted[np.searchsorted(arrays.time, batch.stamp)] = batch.command_speed
     return predicted
@@ -733,13 +754,13 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
                                     'mse': [float(f'{e:.4g}') for e in delay_errors[tried]]}
     sweep = friction_sweep(model, searched)
     nrmse_currents = nrmse(arrays.velocity, simulate_from_currents(model, arrays))
-    nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays, delay))
-                      if firmware is not None else None)
     settings = replace(settings, sample_interval=interval, speed_sigma=speed_noise(arrays),
                        contact_share_floor=contact_share_floor(model, arrays, settings))
     if delay is not None:
         settings = replace(settings, input_delay=delay)
     physics = run_generator(model, arrays, settings)  # the residuals both fits below start from
+    nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays, delay, physics))
+                      if firmware is not None else None)
     fdi, coverage = fit_bounds(physics, settings)
     thresholds, stated = rate_thresholds(false_alarm_rates(model, physics, settings, residual_data),
                                         settings)
