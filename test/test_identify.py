@@ -5,6 +5,8 @@ import pytest
 from youbot_fdi.fdi.identify import (_descend, for_search, RecordingArrays, SEARCH_SECONDS,
                                      SEARCH_WINDOWS)
 
+FAST_EXCEPT = ()  # all of it in ``make check``
+
 
 def test_delay_refit_walks_downhill_from_the_delay_found_before_and_stops_at_the_minimum():
     """Errors (d - 7)^2 on a grid 0..19: from 3 the walk goes up the grid to 7 and tries 8
@@ -35,3 +37,25 @@ def test_the_searches_see_at_most_search_seconds_in_windows_over_the_whole_recor
     assert searched.time[0] == 0.0 and searched.time[-1] == pytest.approx(time[-1], abs=0.011)
     short = RecordingArrays(time[:2000], ones[:2000], ones[:2000], ones[:2000], [])
     assert len(for_search(short).time) == 2000
+
+
+def test_wheels_that_never_turn_keep_their_friction_prior_and_are_named():
+    """Only wheel 0 turns (torque = 0.04 N·m·s/rad x its speed, exact): its viscous friction comes
+    back as 0.04; the other wheels' columns are zero, so their friction is the prior's (0.035),
+    named not excited, with the prior's deviation (the prior times prior_friction_sd)."""
+    from youbot_fdi.fdi.identify import fit_dynamics
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model import load_model
+    model, settings = load_model('youbot'), FdiSettings()
+    time = np.arange(0.0, 5.0, 0.01)
+    speed = np.zeros((len(time), 4))
+    speed[:, 0] = np.sin(time)
+    fit = fit_dynamics(RecordingArrays(time, speed, speed, 0.04 * speed, []), model, settings)
+    assert fit.parameters.viscous_friction[0] == pytest.approx(0.04, rel=1e-6)
+    prior = model.dynamics.parameters.viscous_friction
+    for j in (1, 2, 3):
+        assert fit.parameters.viscous_friction[j] == pytest.approx(prior[j], rel=1e-6)
+        assert f'viscous_friction[{j}]' in fit.info['unexcited']
+        assert fit.info['uncertainty'][f'viscous_friction[{j}]'] == pytest.approx(
+            settings.prior_friction_sd * prior[j], rel=1e-3)
+    assert 'viscous_friction[0]' not in fit.info['unexcited']

@@ -55,6 +55,8 @@ NOISE_PROBE = 1e-3
 #: Rows of residual autocorrelation the fit's covariance counts (correlation_inflation): the
 #: Savitzky-Golay window's reach several times over.
 INFLATION_LAGS = 8 * SAVGOL_WINDOW
+#: A design column shorter than this share of the longest is scaled as if it had that length.
+COLUMN_FLOOR = 1e-9
 #: Consecutive stretches of a recording the dynamics fit's jackknife leaves out one at a time.
 JACKKNIFE_BLOCKS = 10
 #: An interval longer than this many median intervals is a gap (a missed sample or more) [-].
@@ -158,7 +160,7 @@ class DynamicsFit(NamedTuple):
 
     parameters: object  # DynamicParameters
     info: dict  # the fit's figures (roller_friction_ratio, conditioning, priors used, ...)
-    fitted: np.ndarray  # (k, n) the torques the fit explains [N·m]
+    fitted: np.ndarray  # the torques the fit explains on the rows it used, raveled (rows x n) [N·m]
 
 
 def fit_dynamics(arrays, model, settings=None):
@@ -274,8 +276,11 @@ def _solve_dynamics(design, target, model, n, settings):
     values, spread = prior_spread(prior, settings, n)
     lower = np.zeros(design.shape[1])
     lower[:3] = 1e-9
-    column_scale = np.linalg.norm(design, axis=0) + 1e-12
-    scaled = design / column_scale  # unknowns scaled by the column norms (conditioning)
+    norms = np.linalg.norm(design, axis=0)
+    # Unknowns scaled by the column norms (conditioning), but a column that is zero to rounding
+    # (no rotation in the drive: J_z's) is not blown up into a regressor of its rounding.
+    column_scale = np.maximum(norms, COLUMN_FLOOR * max(float(norms.max()), 1e-300))
+    scaled = design / column_scale
     gram, moment = scaled.T @ scaled, scaled.T @ target  # the data's normal equations, once
 
     def normal_equations(noise, data_gram=gram, data_moment=moment):
@@ -287,15 +292,19 @@ def _solve_dynamics(design, target, model, n, settings):
 
     def solve(noise):
         normal, rhs = normal_equations(noise)
-        factor = np.linalg.cholesky(normal)
+        try:
+            factor = np.linalg.cholesky(normal)
+        except np.linalg.LinAlgError:  # not positive definite to rounding: nudge its diagonal
+            factor = np.linalg.cholesky(normal + np.eye(len(normal)) * 1e-12 * np.trace(normal))
         free = scipy.linalg.cho_solve((factor, True), rhs)
         # The unconstrained optimum where it is feasible (with a prior, nearly always) is the
         # bounded one; else the bounded problem on the Cholesky factor (k x k, same minimiser).
         if np.all(free >= lower * column_scale):
             return free / column_scale
         reduced = scipy.linalg.solve_triangular(factor, rhs, lower=True)
-        return scipy.optimize.lsq_linear(factor.T, reduced,
-                                         bounds=(lower * column_scale, np.inf)).x / column_scale
+        # BVLS: an exact active-set solution (k x k), where 'trf' stops early on weak columns.
+        return scipy.optimize.lsq_linear(factor.T, reduced, bounds=(lower * column_scale, np.inf),
+                                         method='bvls').x / column_scale
 
     def jackknife(noise):
         """The delete-a-block jackknife's standard deviation of the (unbounded) fit: the
@@ -318,11 +327,17 @@ def _solve_dynamics(design, target, model, n, settings):
     rough = design @ solve(NOISE_PROBE * max(float(np.std(target)), 1e-12))
     residual = (target - rough).reshape(-1, n)
     inflation = correlation_inflation(residual, INFLATION_LAGS)
-    noise = math.sqrt(max(float(np.mean(residual ** 2)), 1e-30) * inflation)
+    # Never below the probe's share of the torque's spread: a model is not better than that,
+    # and a noise of 0 (synthetic data) would leave the prior no weight at all.
+    floor = NOISE_PROBE * max(float(np.std(target)), 1e-12)
+    noise = max(math.sqrt(float(np.mean(residual ** 2)) * inflation), floor)
     solution = solve(noise)
     fitted = design @ solution
-    information = design.T @ design / noise ** 2 + np.diag(1.0 / spread ** 2)
-    posterior = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
+    # The posterior covariance in the scaled unknowns, noise^2 (X'X + P'P)^-1 there: well
+    # conditioned where the unscaled information matrix spans thirty decades.
+    normal, _ = normal_equations(noise)
+    scaled_covariance = noise ** 2 * np.linalg.pinv(normal, hermitian=True)
+    posterior = np.sqrt(np.clip(np.diag(scaled_covariance), 0.0, None)) / column_scale
     names = parameter_names(n)
     # Excitation is what the data can tell (the posterior); the stated deviation is at least
     # what the recording's parts disagree by, too (a model that misses, not noise).
