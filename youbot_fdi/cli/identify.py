@@ -18,7 +18,9 @@ def _per_hour(rate):
 def add_parser(subparsers):
     parser = subparsers.add_parser(
         NAME, help='identify model parameters from a nominal recording',
-        description='Fit inertias, viscous and Coulomb friction (least squares), the firmware PI '
+        description='Fit inertias, viscous and Coulomb friction (least squares with the profile as '
+                    'a prior: each parameter printed with its standard deviation, the ones the '
+                    'recording does not excite named and kept at the prior), the firmware PI '
                     'gains and input delay (velocity mode), run the report\'s friction sweep, report the fit (NRMSE '
                     'per wheel) and learn the residual noise floors the thresholds use. Writes a '
                     'parameter file for `replay --params`. A damaged recording (cut short) is used as '
@@ -28,7 +30,10 @@ def add_parser(subparsers):
                     'youbot_fdi/fdi/learned.py); the bounds stay those of the physics residuals.')
     parser.add_argument('bag', help='rosbag2 directory of nominal (fault-free) driving')
     parser.add_argument('--output', required=True, help='parameter file to write (YAML)')
-    parser.add_argument('--profile', default='youbot', help='prior profile (default: youbot)')
+    parser.add_argument('--profile', default='youbot',
+                        help='prior profile, youbot, robotino or a YAML file (default: youbot); its '
+                             'values are the prior, their spread prior_inertia_sd and '
+                             'prior_friction_sd in config/fdi.yaml')
     parser.add_argument('--no-gains', action='store_true', help='do not fit the firmware PI gains and input delay')
     parser.add_argument('--physics-only', action='store_true',
                         help='do not learn corrections of the physics (the direction-dependent '
