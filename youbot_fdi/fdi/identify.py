@@ -290,8 +290,7 @@ def _solve_dynamics(design, target, model, n, settings):
         return (data_gram + np.diag(prior_row ** 2),
                 data_moment + prior_row * (noise * values / spread))
 
-    def solve(noise):
-        normal, rhs = normal_equations(noise)
+    def solve(normal, rhs):
         try:
             factor = np.linalg.cholesky(normal)
         except np.linalg.LinAlgError:  # not positive definite to rounding: nudge its diagonal
@@ -324,18 +323,19 @@ def _solve_dynamics(design, target, model, n, settings):
         fits = np.array(fits)
         return np.sqrt((blocks - 1) / blocks * np.sum((fits - fits.mean(axis=0)) ** 2, axis=0))
 
-    rough = design @ solve(NOISE_PROBE * max(float(np.std(target)), 1e-12))
+    # The probe's noise is also the floor of the one measured: a model is not better than that
+    # share of the torque's spread, and a noise of 0 (synthetic data) would leave the prior no
+    # weight at all.
+    floor = NOISE_PROBE * max(float(np.std(target)), 1e-12)
+    rough = design @ solve(*normal_equations(floor))
     residual = (target - rough).reshape(-1, n)
     inflation = correlation_inflation(residual, INFLATION_LAGS)
-    # Never below the probe's share of the torque's spread: a model is not better than that,
-    # and a noise of 0 (synthetic data) would leave the prior no weight at all.
-    floor = NOISE_PROBE * max(float(np.std(target)), 1e-12)
     noise = max(math.sqrt(float(np.mean(residual ** 2)) * inflation), floor)
-    solution = solve(noise)
+    normal, rhs = normal_equations(noise)
+    solution = solve(normal, rhs)
     fitted = design @ solution
     # The posterior covariance in the scaled unknowns, noise^2 (X'X + P'P)^-1 there: well
     # conditioned where the unscaled information matrix spans thirty decades.
-    normal, _ = normal_equations(noise)
     scaled_covariance = noise ** 2 * np.linalg.pinv(normal, hermitian=True)
     posterior = np.sqrt(np.clip(np.diag(scaled_covariance), 0.0, None)) / column_scale
     names = parameter_names(n)
@@ -513,8 +513,13 @@ def fit_firmware_gains(model, arrays, input_delay=0.0):
     # coordinate, is a fraction of a per cent of kp near log 1 and tens of per cent of ki);
     # the cost is relative to the start's, so the tolerance means the same on any robot.
     first = cost(start)
+    scale = max(first, 1e-300)
+
+    def relative(log_gains):  # the simplex's first vertex is the start: not simulated twice
+        return (first if np.array_equal(log_gains, start) else cost(log_gains)) / scale
+
     simplex = start + np.vstack([np.zeros(2), GAIN_SEARCH_STEP * np.eye(2)])
-    result = scipy.optimize.minimize(lambda x: cost(x) / max(first, 1e-300), start,
+    result = scipy.optimize.minimize(relative, start,
                                      method='Nelder-Mead',
                                      options={'initial_simplex': simplex, 'xatol': GAIN_TOLERANCE,
                                               'fatol': GAIN_COST_TOLERANCE, 'maxfev': GAIN_EVALUATIONS})
