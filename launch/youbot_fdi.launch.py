@@ -2,7 +2,7 @@
 
     ros2 launch youbot_fdi youbot_fdi.launch.py [composed:=true|false] [fused:=false|true]
         [params_file:=PARAMS.yaml] [can_interface:=socketcan] [can_channel:=can0]
-        [aggregator:=true|false] [react:=false|true]
+        [aggregator:=true|false] [react:=false|true] [incident_dir:=DIR]
 
 ``composed:=true`` (default) runs kinematics_bridge, observer, residual_generator and decision in
 one process (``youbot_fdi_suite``: a weak robot PC); ``false`` runs them as separate processes.
@@ -11,6 +11,8 @@ the residuals itself (the weakest PCs). ``params_file`` is a ``youbot-fdi identi
 the observer, residual generator and decision. ``aggregator:=true`` starts
 diagnostic_aggregator with config/diagnostic_aggregator.yaml (rqt_robot_monitor shows one tree).
 ``react:=true`` lets the kinematics bridge apply the fault reactions of config/reactions.yaml.
+The decision node keeps an incident recording for every alarm episode (config/incidents.yaml) in
+``incident_dir`` (default: $ROS_HOME/youbot_fdi/incidents).
 """
 import os
 
@@ -30,7 +32,9 @@ def config(name):
 
 def generate_launch_description():
     composed, fused = LaunchConfiguration('composed'), LaunchConfiguration('fused')
-    fdi_parameters = [config('fdi.yaml'), {'params_file': LaunchConfiguration('params_file')}]
+    fdi_parameters = [config('fdi.yaml'), config('incidents.yaml'),
+                      {'params_file': LaunchConfiguration('params_file'),
+                       'incident_dir': LaunchConfiguration('incident_dir')}]
     bridge_parameters = [config('kinematics_bridge.yaml'), config('reactions.yaml'),
                          {'react': LaunchConfiguration('react')}]
     separate = UnlessCondition(composed)
@@ -45,6 +49,9 @@ def generate_launch_description():
                               description='with composed: the observer computes the residuals'),
         DeclareLaunchArgument('params_file', default_value='',
                               description='parameter file from youbot-fdi identify'),
+        DeclareLaunchArgument('incident_dir', default_value='',
+                              description="folder of the incident recordings ('' = "
+                                          "$ROS_HOME/youbot_fdi/incidents)"),
         DeclareLaunchArgument('can_interface', default_value='socketcan'),
         DeclareLaunchArgument('can_channel', default_value='can0'),
         DeclareLaunchArgument('aggregator', default_value='false',

@@ -1,6 +1,7 @@
 """Test-wide settings: keep ROS 2 discovery on loopback, a per-run domain, checked message fields."""
 import os
 import random
+import tempfile
 
 import pytest
 
@@ -10,6 +11,8 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(1, 100)))
 os.environ.setdefault('ROS_PYTHON_CHECK_FIELDS', '1')
 os.environ.setdefault('MPLBACKEND', 'Agg')
+# The decision node keeps incident recordings under $ROS_HOME by default: not in the user's.
+os.environ.setdefault('ROS_HOME', tempfile.mkdtemp(prefix='youbot-fdi-test-ros-home-'))
 
 
 def pytest_collection_modifyitems(items):

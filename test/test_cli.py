@@ -37,7 +37,7 @@ def test_unknown_profile_is_a_one_line_error(capsys):
     assert len(err) == 1 and 'unknown profile' in err[0]
 
 
-@pytest.mark.parametrize('args', [['--help'], ['demo', '--help'], ['simulate', '--help'], ['model', '--help'], ['replay', '--help'], ['identify', '--help'], ['record', '--help'], ['structure', '--help'], ['bench', '--help'], ['echo', '--help'], ['play', '--help']])
+@pytest.mark.parametrize('args', [['--help'], ['demo', '--help'], ['simulate', '--help'], ['model', '--help'], ['replay', '--help'], ['identify', '--help'], ['record', '--help'], ['structure', '--help'], ['bench', '--help'], ['echo', '--help'], ['play', '--help'], ['incidents', '--help']])
 def test_help_everywhere(args):
     result = run_cli(*args)
     assert result.returncode == 0 and 'usage: youbot-fdi' in result.stdout

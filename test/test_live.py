@@ -23,9 +23,21 @@ def alarms(events):
     return [e for e in events if e.level == 'ERROR']
 
 
+def incidents_replayed(folder):
+    """[(incident's event (wheel, fault), the replayed alarms [(wheel, fault)])] of every
+    incident in ``folder``, each replayed with its own parameters as `youbot-fdi replay` does."""
+    from youbot_fdi.app.incidents import incident_parameters, list_incidents
+    found = []
+    for incident in list_incidents(folder):
+        _, pipeline = build_pipeline(*incident_parameters(incident.path))
+        replayed = alarms(replay_recording(pipeline, incident.path).events)
+        found.append(((incident.wheel, incident.fault), [(e.wheel, e.fault) for e in replayed]))
+    return found
+
+
 def test_injected_fault_is_detected_and_isolated_live(tmp_path):
     plan = DemoPlan(SCRIPT.scaled_to(6.0), 'stuck', 'wheel_joint_bl', 3.0, console=False,
-                    record=tmp_path / 'live')
+                    record=tmp_path / 'live', incident_dir=str(tmp_path / 'incidents'))
     run = run_demo_fresh(plan)
     events, injected_at = run.events, run.injected_at
     found = alarms(events)
@@ -40,18 +52,27 @@ def test_injected_fault_is_detected_and_isolated_live(tmp_path):
     assert [(e.wheel, e.fault) for e in offline] == [(e.wheel, e.fault) for e in found]
     assert offline[0].stamp == pytest.approx(found[0].stamp, abs=0.011)  # within one sample
 
+    # One incident for the one alarm episode; replayed with its own parameters it gives the
+    # same alarm on the same wheel (issue 35).
+    incidents = incidents_replayed(tmp_path / 'incidents')
+    assert [event for event, _ in incidents] == [('wheel_joint_bl', 'stuck')]
+    assert incidents[0][1][:1] == [('wheel_joint_bl', 'stuck')]
+
 
 @pytest.mark.parametrize('layout', ['composed', 'fused'])
-def test_one_process_layouts_detect_the_demo_fault(layout):
+def test_one_process_layouts_detect_the_demo_fault(layout, tmp_path):
     """The separate layout (processes) is the default above; the one-process layouts find the
     same fault on the same wheel."""
     plan = DemoPlan(SCRIPT.scaled_to(5.0), 'stuck', 'wheel_joint_fl', 2.5, console=False,
-                    layout=layout)
+                    layout=layout, incident_dir=str(tmp_path / 'incidents'))
     run = run_demo_fresh(plan)
     events, injected_at = run.events, run.injected_at
     found = alarms(events)
     assert found and (found[0].wheel, found[0].fault) == ('wheel_joint_fl', 'stuck')
     assert 0.0 <= found[0].stamp - injected_at <= LIVE_DELAY
+    incidents = incidents_replayed(tmp_path / 'incidents')  # every layout keeps its incidents
+    assert [event for event, _ in incidents] == [('wheel_joint_fl', 'stuck')]
+    assert incidents[0][1][:1] == [('wheel_joint_fl', 'stuck')]
 
 
 def test_demo_command_writes_contract_events(tmp_path):
@@ -114,14 +135,16 @@ def test_play_drives_the_fdi_nodes_on_sim_time(tmp_path):
 
 
 @pytest.mark.parametrize('run_number', range(3))
-def test_fault_free_demo_raises_no_alarm(run_number):
+def test_fault_free_demo_raises_no_alarm(run_number, tmp_path):
     """The README's main job without a fault, three times in a row (issue 33: the shim once
     published stale wheels under new stamps, read as frozen encoders in 3 of 4 runs): no alarm
     during the drive nor while the node processes start."""
-    plan = DemoPlan(SCRIPT, None, 'wheel_joint_fl', 0.0, console=False)
+    plan = DemoPlan(SCRIPT, None, 'wheel_joint_fl', 0.0, console=False,
+                    incident_dir=str(tmp_path / 'incidents'))
     run = run_demo_fresh(plan)
     assert run.injected_at is None and run.start is not None
     assert alarms(run.events) == []
+    assert not (tmp_path / 'incidents').exists()  # no alarm, no incident
     assert [e for e in run.before_drive if getattr(e, 'level', None) == 'ERROR'] == []
 
 

@@ -205,3 +205,103 @@ def write_report(directory, model, pipeline, events, source):
     index = directory / 'index.html'
     index.write_text(page)
     return index
+
+
+INCIDENT_PAGE = 'incident.html'
+
+
+def _incident_figure(model, data, evidence, sidecar, events):
+    """One PNG (bytes) of an incident: every wheel's speed and current torque, then the alarmed
+    wheel's residual of each family against its bound and its evidence; alarms marked red."""
+    import io
+    plt = pyplot()
+    if plt is None or not len(data['time']):
+        return None
+    names = model.wheel_names
+    alarmed = sidecar['event'].get('wheel')
+    w = names.index(alarmed) if alarmed in names else None
+    t = data['time']
+    rows = 2 + (len(FAMILIES) + 1 if w is not None else 0)
+    fig, axes = plt.subplots(rows, 1, figsize=(11, 1.9 * rows), sharex=True, constrained_layout=True)
+    for k, name in enumerate(names):
+        axes[0].plot(t, data['velocity'][:, k], lw=1, label=wheel_suffix(name))
+        axes[1].plot(t, data['torque'][:, k], lw=1, label=wheel_suffix(name))
+    axes[0].set_ylabel('speed [rad/s]')
+    axes[1].set_ylabel('torque [N·m]')
+    axes[0].legend(fontsize=7, loc='upper right', ncol=len(names))
+    if w is not None:
+        suffix = wheel_suffix(alarmed)
+        for k, family in enumerate(FAMILIES):
+            ax = axes[2 + k]
+            ax.fill_between(t, -data[family + '_bound'][:, w], data[family + '_bound'][:, w],
+                            color='0.85', label='bound')
+            ax.plot(t, data[family][:, w], lw=1, label=f'{family}_{suffix}')
+            ax.legend(fontsize=7, loc='upper right')
+        ax = axes[-1]
+        if evidence is not None and len(evidence) == len(t):
+            for k, family in enumerate(FAMILIES):
+                ax.plot(t, evidence[:, k, w], lw=1, label=family)
+        ax.axhline(1.0, color='r', lw=0.8, ls='--', label='threshold')
+        ax.set_ylabel(f'evidence {suffix}\n[thresholds]')
+        ax.legend(fontsize=7, loc='upper left', ncol=len(FAMILIES) + 1)
+    for ax in axes:
+        for event in events:
+            if event.level == Level.ERROR:
+                ax.axvline(event.stamp - data['t0'], color='r', lw=1)
+    axes[-1].set_xlabel(f'time [s] since {data["t0"]:.3f} (red: alarms)')
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format='png', dpi=80)
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def _freeze_frame_table(freeze):
+    """The freeze-frame as an HTML table: per wheel and family, residual / bound and evidence."""
+    header = ''.join(f'<th>{f}: r / u</th><th>evidence</th>' for f in FAMILIES)
+    rows = ''
+    for suffix, entry in (freeze.get('wheels') or {}).items():
+        cells = ''.join(
+            f'<td>{entry.get("residual", {}).get(f, float("nan")):.4g} / '
+            f'{entry.get("bound", {}).get(f, float("nan")):.4g}</td>'
+            f'<td{" style=color:red" if f in entry.get("alarm", ()) else ""}>'
+            f'{entry["evidence"][f]:.2f}</td>' for f in FAMILIES)
+        rows += f'<tr><td>{html.escape(suffix)}</td>{cells}</tr>'
+    return f'<table><tr><th>wheel</th>{header}</tr>{rows}</table>'
+
+
+def write_incident_page(folder, model, pipeline, events, sidecar):
+    """Write ``folder/incident.html``: one self-contained page of an incident replayed with
+    ``pipeline`` (signals, residuals against bounds, evidence, the alarm marked, the freeze-frame
+    the robot kept); returns its path."""
+    import base64
+    data = _series(pipeline.residuals())
+    png = _incident_figure(model, data, pipeline.evidence(), sidecar, events)
+    event = sidecar['event']
+    freeze = sidecar.get('freeze_frame') or {}
+    parameters = sidecar.get('parameters') or {}
+    replayed = [e for e in events if e.level == Level.ERROR]
+    same = any(e.wheel == event.get('wheel') and e.fault == event.get('fault') for e in replayed)
+    rows = ''.join(f'<tr><td>{e.stamp:.3f}</td><td>{e.level}</td><td>{html.escape(str(e.wheel))}'
+                   f'</td><td>{e.fault}</td><td>{html.escape(e.detail)}</td></tr>' for e in events)
+    image = (f'<img src="data:image/png;base64,{base64.b64encode(png).decode()}" '
+             f'style="max-width:100%">' if png else '<p>(figures need matplotlib)</p>')
+    page = (f'<!doctype html><html><head><meta charset="utf-8"><title>incident '
+            f'{html.escape(folder.name)}</title><style>body{{font-family:sans-serif;margin:2em}}'
+            f'td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style></head><body>'
+            f'<h1>{html.escape(str(event.get("fault")))} on {html.escape(str(event.get("wheel") or "base"))}</h1>'
+            f'<p>{html.escape(folder.name)}: alarm at stamp {float(event.get("stamp", 0.0)):.3f} s '
+            f'({html.escape(str(event.get("detail", "")))}); load factor '
+            f'{freeze.get("load_factor", float("nan"))}, load condition '
+            f'{html.escape(str(freeze.get("load_condition", "")))}.</p>'
+            f'<p>Ran with youbot_fdi {html.escape(str((sidecar.get("software") or {}).get("youbot_fdi")))}, '
+            f'profile {html.escape(str(parameters.get("profile")))}, parameter file '
+            f'{html.escape(str(parameters.get("params_file") or "(none: profile defaults)"))} '
+            f'{html.escape(str(parameters.get("params_sha256", ""))[:12])}; recording '
+            f'{"complete" if sidecar.get("complete") else "cut short (read to its damage)"}.</p>'
+            f'<h2>Freeze-frame at the alarm (as the robot saw it)</h2>{_freeze_frame_table(freeze)}'
+            f'<h2>Replayed here: {"the same alarm" if same else "NOT the same alarm"}</h2>'
+            f'<table><tr><th>stamp [s]</th><th>level</th><th>wheel</th><th>fault</th><th>detail</th>'
+            f'</tr>{rows}</table>{image}</body></html>')
+    path = folder / INCIDENT_PAGE
+    path.write_text(page)
+    return path

@@ -8,7 +8,10 @@ node processes, the virtual base and the driver shim), its figures read from ``-
    cycles (past the modules' controller timeout) and missing module answers;
 2. every demo fault on every wheel (the default drive, the fault at 5 s), alone and beside the
    busy core: whether the first alarm names the injected wheel, any alarm before the injection
-   (a false alarm), and the detection delay.
+   (a false alarm), and the detection delay;
+3. the incident budget (issue 35): every run keeps its incidents in one folder with a budget of
+   ``INCIDENT_BUDGET`` incidents, so the fault runs, one after another, overflow it; at the end
+   the folder must hold no more than the budget, each kept incident readable.
 """
 from dataclasses import dataclass
 import json
@@ -27,6 +30,8 @@ RUN_OVERHEAD = 120.0
 #: One core kept busy by a process of its own (a busy robot PC: mapping, planning, a browser).
 BUSY_LOOP = 'while True: pass'
 CONDITIONS = (('alone', False), ('busy core', True))
+#: Incidents the soak's folder may keep (the fault runs alarm about 50 times).
+INCIDENT_BUDGET = 10
 
 
 class BusyCore:
@@ -85,10 +90,13 @@ class LiveRun:
 
 def demo_run(workdir, condition, fault, wheel, drive, repeat=1):
     """``youbot-fdi demo`` (its script ``repeat`` times, ``drive`` [s] in all) in its own
-    process; returns its :class:`LiveRun`."""
+    process, its incidents in ``workdir/incidents`` (budget ``INCIDENT_BUDGET``); returns its
+    :class:`LiveRun`."""
     summary = Path(tempfile.mkstemp(suffix='.json', dir=workdir)[1])
     command = [sys.executable, '-m', 'youbot_fdi.cli.main', 'demo', '--quiet', '--fault', fault,
-               '--wheel', wheel, '--summary', str(summary), '--repeat', str(repeat)]
+               '--wheel', wheel, '--summary', str(summary), '--repeat', str(repeat),
+               '--incidents', str(Path(workdir) / 'incidents'),
+               '--incident-max-count', str(INCIDENT_BUDGET)]
     result = subprocess.run(command, capture_output=True, text=True, timeout=drive + RUN_OVERHEAD,
                             check=False)
     if result.returncode != 0:
@@ -117,7 +125,29 @@ def run_live(progress, soak_minutes=SOAK_MINUTES, faults=None, wheels=None):
                     for wheel in wheels:
                         progress(f'live ({condition}): {fault} on {wheel}')
                         fault_runs.append(demo_run(workdir, condition, fault, wheel, script.duration))
-    return format_live(soaks, fault_runs, repeat * script.duration)
+        incidents = incident_figures(Path(workdir) / 'incidents')
+    return format_live(soaks, fault_runs, repeat * script.duration) + '\n\n' + incidents
+
+
+def incident_figures(folder):
+    """What the soak's incident folder holds at the end, against its budget (text)."""
+    from youbot_fdi.app.incidents import list_incidents
+    from youbot_fdi.bag.reader import RecordingError, RecordingReader
+    from youbot_fdi.model import load_model
+    names = load_model('youbot').wheel_names
+    kept = list_incidents(folder) if folder.exists() else []
+    readable = 0
+    for incident in kept:
+        try:
+            with RecordingReader(incident.path, names, keep_partial=True) as reader:
+                readable += sum(len(chunk.joints) for chunk in reader.chunks()) > 0
+        except RecordingError:
+            pass
+    size = sum(i.size_bytes for i in kept) / 1e6
+    verdict = 'holds' if len(kept) <= INCIDENT_BUDGET else 'EXCEEDED'
+    return (f'Incidents of every run in one folder (budget {INCIDENT_BUDGET}): {len(kept)} kept '
+            f'({size:.1f} MB), {sum(i.complete for i in kept)} complete, {readable} readable; '
+            f'the budget {verdict}')
 
 
 def startup_late(run):

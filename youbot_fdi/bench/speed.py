@@ -146,6 +146,43 @@ def bench_nodes(seconds=5.0, progress=print):
     return results
 
 
+INCIDENT_CPU_TARGET = 1.1  # the suite with its incident recorder <= this x without (issue 35)
+INCIDENT_CALLBACK_TARGET_MS = 1.0  # the recorder's own callback, at most [ms] (issue 35)
+
+
+def bench_incidents(seconds=5.0, progress=print):
+    """The incident recorder's cost in the composed suite at 100 Hz, against the suite without
+    it: with no alarm (its ring buffer only: what a robot pays nearly always) and with an
+    incident opened every few seconds (far more often than a robot should alarm); the longest
+    time the recorder's own callback takes (youbot_fdi.nodes.bench.bench_incident_recorder)."""
+    try:
+        from youbot_fdi.nodes.bench import bench_incident_recorder, INCIDENT_PERIOD, INCIDENT_ROUNDS
+    except ImportError as err:
+        return [BenchResult(f'incident recorder (skipped: {err})', float('nan'), '', 'none', float('nan'))]
+    runs = bench_incident_recorder(seconds, progress)
+    cpu, latency = runs['without'][:2]
+    results = []
+    for case, label in (('no alarm', 'no alarm'),
+                        ('alarms', f'an incident every {INCIDENT_PERIOD:g} s')):
+        share, latency_on, taking, written, writer_cpu = runs[case]
+        # The recorder's own work, timed where it runs (its take callback, its writer thread):
+        # the whole process's CPU varies by +-15 % from run to run through the middleware's
+        # threads, far more than the recorder adds.
+        own = (taking.sum() + writer_cpu) / (seconds * INCIDENT_ROUNDS)
+        note = f'{written} incidents written'
+        results += [
+            BenchResult(f'incidents, {label}: recorder CPU', own * 100, '% core', 'suite without',
+                        cpu * 100, f'target <= {INCIDENT_CPU_TARGET - 1:.0%} of it; {note}'),
+            BenchResult(f'incidents, {label}: suite CPU', share * 100, '% core', 'suite without',
+                        cpu * 100, f'whole process, median of {INCIDENT_ROUNDS} rounds'),
+            BenchResult(f'incidents, {label}: latency p99', np.percentile(latency_on, 99) * 1000,
+                        'ms', 'suite without', np.percentile(latency, 99) * 1000, note),
+            BenchResult(f'incidents, {label}: recorder callback max', taking.max() * 1000, 'ms',
+                        'target', INCIDENT_CALLBACK_TARGET_MS,
+                        f'p99 {np.percentile(taking, 99) * 1e6:.0f} us over {len(taking)} takes')]
+    return results
+
+
 REPLAY_DRIVE = 120.0  # [s] of aggressive driving per replay case, 100 Hz (issue 34 times identify on 120 s)
 REPLAY_REPEATS = 3  # best of
 REPLAY_TARGET = 1.5  # replay <= this x decode-only (issue 14)
@@ -330,7 +367,8 @@ def run_all(progress=print):
                         ('start', bench_start), ('fuzz', lambda: bench_fuzz(progress)),
                         ('replay', lambda: bench_replay(progress)),
                         ('fleet', lambda: bench_fleet(progress)),
-                        ('nodes', lambda: bench_nodes(progress=progress))):
+                        ('nodes', lambda: bench_nodes(progress=progress)),
+                        ('incidents', lambda: bench_incidents(progress=progress))):
         progress(f'running {label} ...')
         outcome = case()
         results.extend(outcome if isinstance(outcome, list) else [outcome])

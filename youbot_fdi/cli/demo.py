@@ -59,6 +59,13 @@ def add_parser(subparsers):
                              "body-velocity tracking error from the fault to the end against the "
                              "simulator's true velocity; a fault-free drive from --at, the floor), to "
                              'compare runs with and without --react')
+    parser.add_argument('--incidents', metavar='DIR', default='',
+                        help='where the decision node keeps an incident recording of each alarm '
+                             'episode (default: $ROS_HOME/youbot_fdi/incidents; ROS_HOME defaults '
+                             'to ~/.ros); list them with `youbot-fdi incidents DIR`')
+    parser.add_argument('--incident-max-count', type=int, default=0, metavar='N',
+                        help='incidents the folder keeps, the oldest going first (default: '
+                             'config/incidents.yaml, 20)')
     parser.add_argument('--quiet', action='store_true', help='only the summary')
     parser.set_defaults(run=run)
 
@@ -111,6 +118,7 @@ def plan_fault_settings(args):
 
 
 def run(args):
+    from youbot_fdi.app.incidents import IncidentSettings, list_incidents
     from youbot_fdi.model.scenario import load_script
     from youbot_fdi.nodes.demo import DemoPlan, run_demo
     if args.repeat < 1:
@@ -122,7 +130,10 @@ def run(args):
     plan = DemoPlan(script, fault, args.wheel, args.at, console=not args.quiet, record=args.record,
                     layout=args.layout, react=args.react,
                     base_overrides=tuple(plan_fault_settings(args).items()),
-                    bridge_overrides=bridge_overrides(args))
+                    bridge_overrides=bridge_overrides(args), incident_dir=args.incidents,
+                    incident_max_count=args.incident_max_count)
+    incident_folder = IncidentSettings(incident_dir=args.incidents).folder()
+    incidents_before = {i.path for i in list_incidents(incident_folder)}
     print(f'youbot-fdi demo ({args.layout} FDI nodes): {script.duration:.1f} s drive, '
           + (f'{fault} on {args.wheel} at {args.at:g} s' if fault else 'no fault injected'), flush=True)
     run = run_demo(plan, args.events)
@@ -171,4 +182,8 @@ def run(args):
               f'({len(events) + len(run.reactions) + len(run.before_drive)} lines)')
     if args.record:
         print(f'  recording: {args.record} (try: youbot-fdi replay {args.record} --events E.jsonl)')
+    incidents = [i for i in list_incidents(incident_folder) if i.path not in incidents_before]
+    if incidents:
+        print(f'  incidents: {len(incidents)} new in {incident_folder} (try: youbot-fdi incidents '
+              f'{incident_folder})')
     return 0

@@ -3,12 +3,12 @@ import argparse
 import sys
 
 from youbot_fdi import __version__
-from youbot_fdi.cli import (bench, controllers, demo, echo, fleet, identify, model_info, play, record,
-                            replay, simulate, structure)
+from youbot_fdi.cli import (bench, controllers, demo, echo, fleet, identify, incidents, model_info, play,
+                            record, replay, simulate, structure)
 from youbot_fdi.cli.status import ERROR, INTERRUPTED
 from youbot_fdi.errors import FdiError
 
-COMMANDS = (demo, identify, replay, fleet, record, play, echo, simulate, controllers, structure,
+COMMANDS = (demo, identify, replay, incidents, fleet, record, play, echo, simulate, controllers, structure,
             model_info, bench)
 
 

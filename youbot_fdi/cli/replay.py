@@ -22,10 +22,13 @@ def add_parser(subparsers):
                     'analysed as far as it can be read. Exit status: 0 whether or not faults were '
                     f'found; {DAMAGED} for a damaged recording (its readable part analysed, one '
                     'line saying where it ends and what was lost); 1 with a one-line reason when '
-                    'nothing can be read.')
-    parser.add_argument('bag', help='rosbag2 directory')
+                    'nothing can be read. An incident (a folder `youbot-fdi incidents` lists) is '
+                    'replayed with the parameter file and FDI settings the robot ran with, unless '
+                    '--params or --fdi-config say otherwise.')
+    parser.add_argument('bag', help='rosbag2 directory (or an incident folder)')
     parser.add_argument('--params', help='parameter file from `youbot-fdi identify` (default: the '
-                                         'youbot profile and config/fdi.yaml)')
+                                         "incident's own, else the youbot profile and "
+                                         'config/fdi.yaml)')
     parser.add_argument('--events', required=True, help='write fault events here (JSON lines)')
     parser.add_argument('--report', metavar='DIR', help='also write an HTML/PNG report here')
     parser.add_argument('--joint-topic', default=JOINT_STATES)
@@ -42,13 +45,26 @@ def _progress(done, total, started):
           end='', file=sys.stderr, flush=True)
 
 
+def run_parameters(args):
+    """(parameter file, FDI settings file) to replay with: the command line's, else an
+    incident's own (what the robot ran with)."""
+    from youbot_fdi.app.incidents import incident_parameters, is_incident
+    if is_incident(args.bag) and not args.params and not args.fdi_config:
+        params, fdi_config = incident_parameters(args.bag)
+        print(f'{args.bag}: an incident; replayed with its own parameters '
+              f'({params or "the profile defaults"}, {fdi_config or "config/fdi.yaml"})')
+        return params, fdi_config
+    return args.params, args.fdi_config
+
+
 def run(args):
     from youbot_fdi.bag.reader import RecordingError
     from youbot_fdi.app.eventlog import EventLog
     from youbot_fdi.app.config import build_pipeline
     from youbot_fdi.app.replay import replay_recording
     from youbot_fdi.fdi.observer import STAMP_COUNTERS
-    model, pipeline = build_pipeline(args.params, args.fdi_config, keep_frames=bool(args.report))
+    params, fdi_config = run_parameters(args)
+    model, pipeline = build_pipeline(params, fdi_config, keep_frames=bool(args.report))
     events_path = Path(args.events)
     found = []
     error = None

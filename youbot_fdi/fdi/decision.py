@@ -194,6 +194,9 @@ class DecisionMaker:
         self._used_scores = False  # the last diagnosis depended on the scores, not only the alarms
         #: what is published: the raw states above as episodes (youbot_fdi/fdi/lifecycle.py)
         self.lifecycle = EventLifecycle(LifecycleSettings.of(settings))
+        #: a list to keep the evidence of every row judged, in thresholds (N, families, n) per
+        #: block (reports, incident pages); None (the default): not kept
+        self.evidence_trace = None
 
     def _signatures(self, residual_data):
         """fault -> (kind, wheel index, set of torque-family wheel indices, observer indices)."""
@@ -390,6 +393,7 @@ class DecisionMaker:
             z = z.copy()
             z[breaking_away, TORQUE] = 0.0
         fresh = breaking_away | moved
+        judged = []
         while start < rows:
             hold = self.alarm[TORQUE].copy()
             part = slice(start, rows)
@@ -399,11 +403,15 @@ class DecisionMaker:
             changes = np.flatnonzero((alarm[:-1, TORQUE] != hold).any(axis=1))
             if not len(changes):
                 parts.append(alarm)
+                judged.append(self._pass['judged'])
                 break
             changed = int(changes[0])  # judged alike with the old hold up to here
             parts.append(alarm[:changed + 1])
+            judged.append(self._pass['judged'][:changed + 1])
             self._rewind(changed)
             start += changed + 1
+        if self.evidence_trace is not None:
+            self.evidence_trace.append(np.concatenate(judged))
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def _rewind(self, row):
@@ -433,6 +441,7 @@ class DecisionMaker:
         step = weight * self.settings.evidence_interval  # [s] the time each row counts for
         evidence = self.evidence(z, self.torque_shift(torque, torque_bound, torque_scale, stamps,
                                                       hold, fresh), weight)
+        self._pass['judged'] = evidence
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps)
@@ -840,6 +849,29 @@ class DecisionMaker:
         self.alarm[:] = False
         self._rise[:] = NEVER
         return events, cleared
+
+    def freeze_frame(self, frame: ResidualFrame | None = None) -> dict:
+        """The decision's state now, for an incident's sidecar (plain YAML types): per wheel
+        (suffix) the evidence of each family in thresholds (an alarm from 1) and the alarming
+        families; with the last residual ``frame``, its stamp [s], each residual and bound, and
+        the load factor [-]."""
+        judged = self._judged(self._evidence, self._shift)
+        wheels = {}
+        for w, suffix in enumerate(self.suffixes):
+            entry = {'evidence': {f: round(float(judged[i, w]), 4) for i, f in enumerate(FAMILIES)},
+                     'alarm': [f for i, f in enumerate(FAMILIES) if self.alarm[i, w]]}
+            if frame is not None:
+                entry['residual'] = {f: round(float(frame.values[f][w]), 6) for f in FAMILIES}
+                entry['bound'] = {f: round(float(frame.bounds[f][w]), 6) for f in FAMILIES}
+                entry['speed'] = round(float(frame.velocity[w]), 4)
+                entry['torque'] = round(float(frame.torque[w]), 5)
+            wheels[suffix] = entry
+        state = {'samples': self.samples, 'load_condition': str(self.load_level),
+                 'wheels': wheels}
+        if frame is not None:
+            state = {'stamp': round(float(frame.stamp), 6),
+                     'load_factor': round(float(frame.load_factor), 4), **state}
+        return state
 
     def states(self) -> dict[str, tuple[Level, str]]:
         """Component -> (level, fault) as published (the base's own faults, not its conditions)."""

@@ -34,6 +34,8 @@ class FdiPipeline:
         self.generator = ResidualGenerator(model, settings)
         self.decision = DecisionMaker(model.wheel_names, settings, residual_data)
         self._kept = [] if keep_frames else None
+        if keep_frames:
+            self.decision.evidence_trace = []
         #: the pooled RMS of every residual family so far
         self.spread = ResidualSpread()
         self._last_stamp = None
@@ -46,6 +48,14 @@ class FdiPipeline:
         if self._kept is None:
             return None
         return ResidualBatch.concatenate(self._kept) if self._kept else None
+
+    def evidence(self):
+        """The decision's evidence after every residual frame so far, in thresholds (N,
+        families, n) (None unless ``keep_frames``)."""
+        trace = self.decision.evidence_trace
+        if not trace:
+            return None
+        return np.concatenate(trace)
 
     def feed(self, chunk):
         """A chunk of samples; returns the fault events it causes, in order.

@@ -71,6 +71,7 @@ def analyse(recording, params_path, output, fault_free_margin):
 
     from youbot_fdi.app.eventlog import EventLog
     from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.incidents import incident_parameters, is_incident
     from youbot_fdi.app.replay import replay_recording
     output = Path(output)
     row = {'recording': recording.name, 'robot': recording.robot, 'path': recording.path,
@@ -78,7 +79,12 @@ def analyse(recording, params_path, output, fault_free_margin):
            'friction': [], 'friction_sd': [], 'mass': math.nan, 'mass_sd': math.nan,
            'status': 'ok', 'error': ''}
     try:
-        model, pipeline = build_pipeline(params_path)
+        # An incident (youbot_fdi/app/incidents.py) carries what its robot ran with; it is replayed
+        # with that unless the fleet was given a parameter file.
+        fdi_config = None
+        if not params_path and is_incident(recording.path):
+            params_path, fdi_config = incident_parameters(recording.path)
+        model, pipeline = build_pipeline(params_path, fdi_config)
         row['wheels'] = list(model.wheel_names)
         with EventLog(output / 'events' / f'{recording.name}.jsonl') as log:
             result = replay_recording(pipeline, recording.path, on_event=log.write)

@@ -104,6 +104,90 @@ class TimedDecision(DecisionNode):
         self.done[stamp_key(stamp_to_seconds(msg.header.stamp))] = time.monotonic()
 
 
+#: The incident bench opens an incident this often [s] (an alarm every few seconds: far more
+#: than a robot should see), so the writer thread works through most of the measured time.
+INCIDENT_PERIOD = 2.0
+BENCH_EVENT = {'stamp': 0.0, 'level': 'ERROR', 'wheel': 'wheel_joint_fl', 'fault': 'torque_loss',
+               'residuals': ['torque_fl'], 'detail': 'incident bench'}
+
+
+class IncidentBenchDecision(TimedDecision):
+    """The decision node timing each take of the recorded messages (the callback its incident
+    recorder adds) [s], opening an incident every ``period`` [s] (None: never)."""
+
+    def __init__(self, period=INCIDENT_PERIOD, **kwargs):
+        super().__init__(**kwargs)
+        self.take_seconds = []
+        self.recorder_cpu = 0.0
+        if period is not None and self.recorder is not None:
+            self.create_timer(period, lambda: self.recorder.open(
+                BENCH_EVENT, time.time_ns(), self.decision.freeze_frame(self._frame)))
+
+    def destroy_node(self):
+        if self.recorder is not None:
+            self.recorder_cpu = self.recorder.writer_cpu  # before the recorder closes
+        return super().destroy_node()
+
+    def take_recorded(self):
+        started = time.perf_counter()
+        super().take_recorded()
+        self.take_seconds.append(time.perf_counter() - started)
+
+
+#: Rounds of the incident bench: the three cases run in turn this many times and each case's CPU
+#: share is the median of its rounds (one 10 s run of a case varied by +-15 % on the dev machine).
+INCIDENT_ROUNDS = 3
+
+
+def bench_incident_recorder(seconds=5.0, progress=None, period=INCIDENT_PERIOD,
+                            rounds=INCIDENT_ROUNDS):
+    """The composed suite at 100 Hz without its incident recorder, with it and no alarm, and with
+    it opening an incident every ``period`` [s], the three in turn ``rounds`` times: {case:
+    (median CPU share, latencies [s], durations of the recorder's callback [s] (empty without),
+    incidents written, writer thread CPU [s])}."""
+    from rclpy.parameter import Parameter
+
+    from youbot_fdi.app.incidents import list_incidents
+    from youbot_fdi.bag.reader import RecordingReader
+    from youbot_fdi.model.profile import load_model
+    from youbot_fdi.model.scenario import DriveScript, Segment
+    from youbot_fdi.tmcm.recordings import record_drive
+
+    keep_discovery_local()
+    model = load_model('youbot')
+    names = model.wheel_names
+    script = DriveScript((Segment('forward', (0.3, 0.0, 0.0), 2.0), Segment('turn', (0.1, 0.2, 0.8), 2.0)))
+    factories = list(LAYOUTS['separate'][:-1])
+    fdi_names = [node_name(f) for f in LAYOUTS['separate']]
+    cases = {'without': (False, None), 'no alarm': (True, None), 'alarms': (True, period)}
+    runs = {case: [] for case in cases}
+    with tempfile.TemporaryDirectory() as tmp:
+        record_drive(f'{tmp}/rec', model, script)
+        with RecordingReader(f'{tmp}/rec', names) as reader:
+            samples = [('command' if hasattr(s, 'kind') else 'joint', s) for s in reader.samples()]
+        for round_number in range(rounds):
+            for case, (enabled, every) in cases.items():
+                if progress is not None:
+                    progress(f'  incidents: round {round_number + 1} of {rounds}, recorder {case} ...')
+                folder = f'{tmp}/incidents-{round_number}-{len(runs[case])}-{enabled}-{every}'
+                overrides = [Parameter('incidents_enabled', value=enabled),
+                             Parameter('incident_dir', value=folder)]
+                made = []
+
+                def decision(context, overrides=overrides, every=every, made=made):
+                    made.append(IncidentBenchDecision(every, context=context,
+                                                      parameter_overrides=overrides))
+                    return made[-1]
+                share, latency = _run(factories + [decision], [], fdi_names, samples, names,
+                                      seconds, 'single')
+                node = made[-1]
+                runs[case].append((share, latency, np.array(node.take_seconds),
+                                   len(list_incidents(folder)), node.recorder_cpu))
+    return {case: (float(np.median([r[0] for r in rows])), np.concatenate([r[1] for r in rows]),
+                   np.concatenate([r[2] for r in rows]), sum(r[3] for r in rows),
+                   sum(r[4] for r in rows)) for case, rows in runs.items()}
+
+
 def relay_arrangement(count):
     """(source, target) of ``count`` relays: one beside the chain (the kinematics bridge's
     counterpart), the others chained from /joint_states; the last is the chain's end."""

@@ -7,6 +7,13 @@ detail). ``/diagnostics`` gets one status per wheel and one for the base, at ``d
 and on every change. Service ``~/reset`` (std_srvs/Trigger) clears latched faults after a repair,
 answers what it cleared and publishes an OK event for each.
 
+The black box (:mod:`youbot_fdi.app.incidents`, parameters ``incident_*`` in
+``config/incidents.yaml``): the node keeps the raw messages of the FDI's inputs and outputs for
+``incident_before`` seconds (:class:`BufferedTopics`: serialized, taken every
+``INCIDENT_TAKE_PERIOD`` without a callback per message) and writes an incident recording for
+every new alarm episode, in a background thread. Receive times are the middleware's (system
+clock), as ``ros2 bag record`` stamps them.
+
 Silence is judged on what the base sends: no residual for ``data_timeout`` (ROS time, so replayed
 recordings with use_sim_time work) is comm_loss of the base only if no /joint_states came after
 the last sample judged either. If samples came (an FDI node is behind or down: starting, starved
@@ -14,8 +21,10 @@ of CPU), that is not a base fault: a WARN ``pipeline`` status on ``/diagnostics`
 residuals flow again. The decision reads /joint_states only then (:class:`NewestMessage`: no
 callback per sample).
 """
+import dataclasses
 import math
 import sys
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -23,17 +32,35 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from youbot_fdi.app.config import configure, residual_data_for
+from youbot_fdi.app.incidents import IncidentRecorder, IncidentSettings, RECORDED_TOPICS, RunContext
 from youbot_fdi.faults import Level
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.nodes.common import (declare_settings, diagnostics_publisher, LATCHED_QOS,
+from youbot_fdi.nodes.common import (BufferedTopics, declare_settings, diagnostics_publisher, LATCHED_QOS,
                                      NAME_PREFIX, NewestMessage, now_seconds, seconds_to_stamp,
                                      SENSOR_QOS, spin_nodes, stamp_to_seconds, timing_report)
 from youbot_fdi.nodes.conversions import BASE_COMPONENT, fault_array, LEVELS
 from youbot_fdi.topics import FAULTS, JOINT_STATES, RESIDUALS
 
 NODE_NAME = 'decision'
+#: How often the recorded topics' messages are taken into the incident recorder [s], and how
+#: many each topic keeps meanwhile [messages]: 2.5 s of 100 Hz /joint_states, so an executor held
+#: up for that long loses none.
+INCIDENT_TAKE_PERIOD = 0.1
+INCIDENT_BUFFER_DEPTH = 256
+
+
+def message_class(type_name):
+    """The rclpy message class of ``pkg/msg/Name``."""
+    import importlib
+    package, kind, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+
+
+def plain(value):
+    """A settings value as plain YAML (tuples as lists)."""
+    return list(value) if isinstance(value, tuple) else value
 
 
 class DecisionNode(Node):
@@ -57,10 +84,36 @@ class DecisionNode(Node):
         self.timing = timing_report(self, self.settings)
         self.create_subscription(JointState, RESIDUALS, self.on_residuals, SENSOR_QOS)
         self.create_service(Trigger, '~/reset', self.on_reset)
+        self._frame = None  # the last residual frame judged (the incidents' freeze-frame)
+        self._alarmed = set()  # components in an alarm episode
+        self.recorder = self._start_recorder(declare_settings(self, IncidentSettings), params_file)
         self.create_timer(1.0 / rate, self.publish_diagnostics)
         # Fires only after data_timeout without residuals: every residual restarts it (no
         # periodic wake-ups while data flow).
         self.stall_timer = self.create_timer(self.settings.data_timeout, self.check_stall)
+
+    def _start_recorder(self, settings, params_file):
+        """The incident recorder and its buffered subscriptions (None when disabled)."""
+        if not settings.incidents_enabled:
+            return None
+        context = RunContext(params_file=params_file or '',
+                             settings={k: plain(v) for k, v in
+                                       dataclasses.asdict(self.settings).items()},
+                             profile=self.model.profile.name)
+        recorder = IncidentRecorder(settings, context, log=self.get_logger().info)
+        self._buffer = BufferedTopics(self, {topic: message_class(type_name) for topic, type_name
+                                             in RECORDED_TOPICS.items()}, INCIDENT_BUFFER_DEPTH)
+        self.create_timer(INCIDENT_TAKE_PERIOD, self.take_recorded)
+        self.get_logger().info(f'incidents: {settings.folder()} ({settings.incident_before:g} s '
+                               f'before an alarm, {settings.incident_after:g} s after)')
+        return recorder
+
+    def take_recorded(self):
+        """Move what the recorded topics received into the incident recorder (its ring buffer
+        and open incidents), and close the incidents whose time is up."""
+        self.recorder.record_batch([(topic, time_ns, data)
+                                    for time_ns, topic, data in self._buffer.take()])
+        self.recorder.poll(time.time_ns())
 
     def on_residuals(self, msg):
         stamp = stamp_to_seconds(msg.header.stamp)
@@ -71,6 +124,7 @@ class DecisionNode(Node):
             self.get_logger().warning(f'residual vector ignored: {err}', throttle_duration_sec=2.0)
             return
         self._last_stamp = stamp
+        self._frame = frame
         self.stall_timer.reset()
         if self._behind_since is not None:
             self.get_logger().info('residuals flow again')
@@ -116,6 +170,7 @@ class DecisionNode(Node):
             return
         self.events.extend(events)
         self.faults_pub.publish(fault_array(events, events[-1].stamp))
+        self._open_incidents(events)
         for event in events:
             text = f'{event.level} {event.wheel or BASE_COMPONENT}: {event.fault} ({event.detail})'
             if event.level == Level.ERROR:
@@ -124,7 +179,27 @@ class DecisionNode(Node):
                 self.get_logger().info(text)
         self.publish_diagnostics()
 
+    def _open_incidents(self, events):
+        """An incident for each new alarm episode among ``events``."""
+        for event in events:
+            if event.level != Level.ERROR:
+                if event.level == Level.OK:
+                    self._alarmed.discard(event.wheel)
+                continue
+            if event.wheel in self._alarmed:
+                continue  # the same episode (its type refined)
+            self._alarmed.add(event.wheel)
+            if self.recorder is not None:
+                self.take_recorded()  # the ring up to now, then the incident opens
+                self.recorder.open(event.to_dict(), time.time_ns(),
+                                   self.decision.freeze_frame(self._frame))
+
     def destroy_node(self):
+        if self.recorder is not None:
+            self.take_recorded()
+            self.recorder.close()
+            self.recorder = None
+            self._buffer.close()
         self.base_watch.close()
         return super().destroy_node()
 

@@ -35,6 +35,7 @@ from youbot_fdi.nodes.common import (freeze_startup_heap, keep_discovery_local, 
                                      now_seconds, SENSOR_QOS, shutdown_nodes, stop_node_processes)
 from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
 from youbot_fdi.nodes.conversions import event_from_status, reaction_from_status
+from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.virtual_youbot import VirtualYoubotNode
 from youbot_fdi.naming import wheel_suffix
@@ -68,10 +69,23 @@ class DemoPlan:
     react: bool = False  # the kinematics bridge applies the fault reactions (config/reactions.yaml)
     base_overrides: tuple = ()  # (name, value) of VirtualBaseSettings, e.g. fault magnitudes
     bridge_overrides: tuple = ()  # (name, value) parameters of the kinematics bridge
+    incident_dir: str = ''  # the decision node's incident folder ('' = its default)
+    incident_max_count: int = 0  # the decision node's incident budget (0 = its default)
 
     def bridge_parameters(self):
         """The kinematics bridge's parameter overrides {name: value} (``react`` included)."""
         return {**dict(self.bridge_overrides), **({'react': True} if self.react else {})}
+
+    def node_parameters(self, factories):
+        """Parameter overrides {node module: {name: value}} of the FDI nodes of ``factories``
+        (the first, the kinematics bridge, applies the reactions; the decision keeps incidents)."""
+        overrides = {node_module(factories[0]): self.bridge_parameters()}
+        incidents = {name: value for name, value in (('incident_dir', str(self.incident_dir)),
+                                                     ('incident_max_count', self.incident_max_count))
+                     if value}
+        if incidents:
+            overrides[DecisionNode.__module__] = incidents
+        return overrides
 
 
 class DemoDriverNode(Node):
@@ -243,6 +257,11 @@ _END_WITH_PARENT = ('import ctypes, runpy, signal, sys; ctypes.CDLL(None).prctl(
                     'alter_sys=True)')
 
 
+def parameter_text(value):
+    """A parameter value as ``-p name:=TEXT`` wants it (YAML: true/false for booleans)."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
 def start_node_processes(factories, log_dir, parameters=None):
     """Each FDI node as its own process (``python -m <its module>``, as ``ros2 run`` starts it),
     output to ``log_dir/<module>.log``, with ``parameters`` {module: {name: value}} as
@@ -252,7 +271,7 @@ def start_node_processes(factories, log_dir, parameters=None):
         module = node_module(factory)
         overrides = (parameters or {}).get(module, {})
         arguments = ['--ros-args'] + [a for name, value in overrides.items()
-                                      for a in ('-p', f'{name}:={str(value).lower()}')] if overrides else []
+                                      for a in ('-p', f'{name}:={parameter_text(value)}')] if overrides else []
         log = open(Path(log_dir) / f'{module.rsplit(".", 1)[-1]}.log', 'w')  # noqa: SIM115
         start = ['-c', _END_WITH_PARENT] if sys.platform == 'linux' else ['-m']
         processes.append(subprocess.Popen([sys.executable, *start, module, *arguments], stdout=log,
@@ -323,20 +342,19 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         shim = DriverShimNode(context=context, parameter_overrides=channel)
         nodes.append(shim)
         waits_for = ()
-        bridge_module = node_module(factories[0])  # the kinematics bridge applies the reactions
+        overrides = plan.node_parameters(factories)
         if plan.layout == 'separate':
             log_dir = tempfile.mkdtemp(prefix='youbot-fdi-demo-')
-            processes = start_node_processes(factories, log_dir,
-                                             {bridge_module: plan.bridge_parameters()})
+            processes = start_node_processes(factories, log_dir, overrides)
             waits_for = [node_name(f) for f in factories]
             if plan.console:
                 print(f'FDI nodes in {len(processes)} processes (logs: {log_dir}); waiting for '
                       f'them on the graph ...', flush=True)
         else:
-            bridge = [Parameter(name, value=value) for name, value in plan.bridge_parameters().items()]
-            nodes += [factory(context=context, parameter_overrides=bridge)
-                      if node_module(factory) == bridge_module else factory(context=context)
-                      for factory in factories]
+            nodes += [factory(context=context, parameter_overrides=[
+                Parameter(name, value=value)
+                for name, value in overrides.get(node_module(factory), {}).items()])
+                for factory in factories]
         startup = {}
 
         def drive_starts():

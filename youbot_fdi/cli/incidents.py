@@ -1,0 +1,67 @@
+"""``youbot-fdi incidents``: list the incident recordings of a folder, with a page for each."""
+from pathlib import Path
+
+from youbot_fdi.cli.status import ERROR
+
+NAME = 'incidents'
+MEGABYTE = 1_000_000
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser(
+        NAME, help='list incident recordings (one per alarm episode) with a page for each',
+        description='List the incidents the decision node kept (one recording per alarm episode: '
+                    'the seconds around the alarm, its freeze-frame and parameters): time, wheel, '
+                    'fault, size. Each is replayed with the parameters the robot ran with and '
+                    'gets a one-page incident.html in its folder (signals, residuals against their '
+                    'bounds, evidence, the alarm marked); --no-pages skips that. Replay one with '
+                    '`youbot-fdi replay INCIDENT --events E.jsonl`.')
+    parser.add_argument('folder', help='incident folder (default of the nodes: '
+                                       '$ROS_HOME/youbot_fdi/incidents), or one incident')
+    parser.add_argument('--no-pages', action='store_true', help='only the listing')
+    parser.set_defaults(run=run)
+
+
+def page(incident):
+    """Replay ``incident`` (an IncidentSummary) with its own parameters and write its page;
+    returns (page path, whether the replay gave the same alarm)."""
+    from youbot_fdi.app.config import build_pipeline
+    from youbot_fdi.app.incidents import incident_parameters, read_sidecar
+    from youbot_fdi.app.replay import replay_recording
+    from youbot_fdi.app.report import write_incident_page
+    from youbot_fdi.faults import Level
+    params, fdi_config = incident_parameters(incident.path)
+    model, pipeline = build_pipeline(params, fdi_config, keep_frames=True)
+    events = replay_recording(pipeline, incident.path).events
+    sidecar = read_sidecar(incident.path)
+    same = any(e.level == Level.ERROR and e.wheel == sidecar['event'].get('wheel')
+               and e.fault == sidecar['event'].get('fault') for e in events)
+    return write_incident_page(incident.path, model, pipeline, events, sidecar), same
+
+
+def run(args):
+    from youbot_fdi.app.incidents import list_incidents
+    from youbot_fdi.bag.reader import RecordingError
+    folder = Path(args.folder)
+    if not folder.exists():
+        print(f'youbot-fdi incidents: error: {folder} does not exist')
+        return ERROR
+    incidents = list_incidents(folder)
+    if not incidents:
+        print(f'{folder}: no incidents')
+        return 0
+    total = sum(i.size_bytes for i in incidents)
+    print(f'{folder}: {len(incidents)} incidents, {total / MEGABYTE:.1f} MB')
+    print(f'  {"time (UTC)":<29} {"wheel":<16} {"fault":<15} {"size":>8}  state     replayed')
+    for incident in incidents:
+        state = 'complete' if incident.complete else 'cut'
+        replayed = ''
+        if not args.no_pages:
+            try:
+                path, same = page(incident)
+                replayed = f'{"same alarm" if same else "DIFFERENT"}  {path}'
+            except RecordingError as err:
+                replayed = f'unreadable: {err}'
+        print(f'  {incident.time:<29} {incident.wheel:<16} {incident.fault:<15} '
+              f'{incident.size_bytes / MEGABYTE:6.2f}MB  {state:<9} {replayed}')
+    return 0
