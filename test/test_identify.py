@@ -59,3 +59,21 @@ def test_wheels_that_never_turn_keep_their_friction_prior_and_are_named():
         assert fit.info['uncertainty'][f'viscous_friction[{j}]'] == pytest.approx(
             settings.prior_friction_sd * prior[j], rel=1e-3)
     assert 'viscous_friction[0]' not in fit.info['unexcited']
+
+
+def test_our_savitzky_golay_filter_is_scipys():
+    """identify smooths with its own Savitzky-Golay filter (scipy.signal's import takes longer
+    than the filtering): the same values as scipy.signal.savgol_filter, edges included."""
+    import scipy.signal
+
+    from youbot_fdi.fdi.recursions import savgol_filter
+    rng = np.random.default_rng(3)
+    for shape in ((40,), (120, 4), (9, 3)):
+        values = rng.normal(size=shape).cumsum(axis=0)
+        for window in (5, 9):
+            for deriv in (0, 1, 2):
+                ours = savgol_filter(values, window, 2, deriv, delta=0.01)
+                theirs = scipy.signal.savgol_filter(values, window, 2, deriv=deriv, delta=0.01, axis=0)
+                np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max())
+    with pytest.raises(ValueError, match='window must be odd'):
+        savgol_filter(np.zeros(10), 4, 2)

@@ -130,6 +130,8 @@ def test_every_node_parameter_file_loads_into_its_settings():
     bridge = node_parameters(yaml.safe_load((REPO / 'config' / 'kinematics_bridge.yaml').read_text()),
                              'kinematics_bridge')
     assert set(bridge) == {'profile', 'max_wheel_speed', 'odom_frame', 'base_frame'}
+    from youbot_fdi.app.incidents import IncidentSettings  # the decision node's black box
+    assert load_settings(IncidentSettings, 'decision', REPO / 'config' / 'incidents.yaml') == IncidentSettings()
 
 
 def test_imports_run_downward():

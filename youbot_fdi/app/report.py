@@ -208,6 +208,10 @@ def write_report(directory, model, pipeline, events, source):
 
 
 INCIDENT_PAGE = 'incident.html'
+#: Units of the residual families on the incident page (command: rad/s in velocity mode, N·m in
+#: current mode).
+FAMILY_UNITS = {'torque': 'N·m', 'observer': 'rad/s', 'command': 'rad/s | N·m', 'encoder': 'rad'}
+EVIDENCE_SHOWN = 3.0  # the evidence axis ends at this many thresholds (an alarm is from 1)
 
 
 def _incident_figure(model, data, evidence, sidecar, events):
@@ -220,7 +224,8 @@ def _incident_figure(model, data, evidence, sidecar, events):
     names = model.wheel_names
     alarmed = sidecar['event'].get('wheel')
     w = names.index(alarmed) if alarmed in names else None
-    t = data['time']
+    alarm_stamp = float(sidecar['event'].get('stamp', data['t0']))
+    t = data['time'] + data['t0'] - alarm_stamp  # [s] from the alarm
     rows = 2 + (len(FAMILIES) + 1 if w is not None else 0)
     fig, axes = plt.subplots(rows, 1, figsize=(11, 1.9 * rows), sharex=True, constrained_layout=True)
     for k, name in enumerate(names):
@@ -236,19 +241,22 @@ def _incident_figure(model, data, evidence, sidecar, events):
             ax.fill_between(t, -data[family + '_bound'][:, w], data[family + '_bound'][:, w],
                             color='0.85', label='bound')
             ax.plot(t, data[family][:, w], lw=1, label=f'{family}_{suffix}')
+            ax.set_ylabel(f'{family} [{FAMILY_UNITS.get(family, "")}]')
             ax.legend(fontsize=7, loc='upper right')
         ax = axes[-1]
         if evidence is not None and len(evidence) == len(t):
             for k, family in enumerate(FAMILIES):
                 ax.plot(t, evidence[:, k, w], lw=1, label=family)
         ax.axhline(1.0, color='r', lw=0.8, ls='--', label='threshold')
-        ax.set_ylabel(f'evidence {suffix}\n[thresholds]')
+        ax.set_ylim(0.0, EVIDENCE_SHOWN)
+        ax.set_ylabel(f'evidence {suffix}\n[thresholds, to {EVIDENCE_SHOWN:g}]')
         ax.legend(fontsize=7, loc='upper left', ncol=len(FAMILIES) + 1)
     for ax in axes:
         for event in events:
             if event.level == Level.ERROR:
-                ax.axvline(event.stamp - data['t0'], color='r', lw=1)
-    axes[-1].set_xlabel(f'time [s] since {data["t0"]:.3f} (red: alarms)')
+                ax.axvline(event.stamp - alarm_stamp, color='r', lw=1)
+    axes[-1].set_xlabel(f'time [s] from the alarm at stamp {alarm_stamp:.3f} s (red: alarms of '
+                        'the replay)')
     buffer = io.BytesIO()
     fig.savefig(buffer, format='png', dpi=80)
     plt.close(fig)

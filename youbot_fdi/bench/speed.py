@@ -150,6 +150,45 @@ INCIDENT_CPU_TARGET = 1.1  # the suite with its incident recorder <= this x with
 INCIDENT_CALLBACK_TARGET_MS = 1.0  # the recorder's own callback, at most [ms] (issue 35)
 
 
+INTERFERENCE_SECONDS = 40.0  # [s] of 100 Hz messages through the recorder in the probe below
+INTERFERENCE_OPEN_EVERY = 3.0  # [s] between incidents in it
+
+
+def _writer_interference(incidents):
+    """The longest time [s] one step of a callback-like loop takes (hand a 100 Hz sample's three
+    messages to the recorder, a little work) while the recorder's writer thread writes an
+    incident every ``INTERFERENCE_OPEN_EVERY`` s (``incidents`` True) or never: the loop never
+    sleeps, so it wants the interpreter lock whenever the writer holds it (the worst case for a
+    callback), and the difference is the delay the writer adds. Receive times are simulated: it
+    runs as fast as the machine allows."""
+    import gc
+    import tempfile
+    from youbot_fdi.app.incidents import IncidentRecorder, IncidentSettings, RunContext
+    data = bytes(300)  # about a /joint_states message
+    freeze = {'wheels': {w: {'evidence': dict.fromkeys('toce', 0.1)} for w in ('fl', 'fr', 'bl', 'br')}}
+    with tempfile.TemporaryDirectory() as tmp:
+        recorder = IncidentRecorder(IncidentSettings(incident_dir=tmp), RunContext(),
+                                    log=lambda _: None)
+        gc.collect()
+        gc.freeze()  # as the nodes do after start-up
+        longest, period_ns = 0.0, 10_000_000
+        opening = int(INTERFERENCE_OPEN_EVERY * 1e9 / period_ns)
+        for k in range(int(INTERFERENCE_SECONDS * 100)):
+            now = k * period_ns
+            started = time.perf_counter()
+            recorder.record_batch([('/joint_states', now, data), ('/wheel_commands', now, data),
+                                   ('/cmd_vel', now, data)])
+            if incidents and k >= 1000 and k % opening == 0:
+                recorder.open({'wheel': 'wheel_joint_fl', 'fault': 'stuck', 'level': 'ERROR'}, now,
+                              freeze)
+            sum(range(200))  # a callback's own work
+            longest = max(longest, time.perf_counter() - started)
+        recorder.flush()
+        recorder.close()
+        gc.unfreeze()
+    return longest
+
+
 def bench_incidents(seconds=5.0, progress=print):
     """The incident recorder's cost in the composed suite at 100 Hz, against the suite without
     it: with no alarm (its ring buffer only: what a robot pays nearly always) and with an
@@ -159,6 +198,12 @@ def bench_incidents(seconds=5.0, progress=print):
         from youbot_fdi.nodes.bench import bench_incident_recorder, INCIDENT_PERIOD, INCIDENT_ROUNDS
     except ImportError as err:
         return [BenchResult(f'incident recorder (skipped: {err})', float('nan'), '', 'none', float('nan'))]
+    progress('  incidents: how long the writer thread can hold a callback up')
+    interference = [BenchResult('incidents: longest callback step, writer busy',
+                                _writer_interference(True) * 1000, 'ms', 'writer idle',
+                                _writer_interference(False) * 1000,
+                                f'target <= {INCIDENT_CALLBACK_TARGET_MS:g} ms; a loop that never '
+                                f'sleeps, an incident every {INTERFERENCE_OPEN_EVERY:g} s')]
     runs = bench_incident_recorder(seconds, progress)
     cpu, latency = runs['without'][:2]
     results = []
@@ -180,7 +225,7 @@ def bench_incidents(seconds=5.0, progress=print):
             BenchResult(f'incidents, {label}: recorder callback max', taking.max() * 1000, 'ms',
                         'target', INCIDENT_CALLBACK_TARGET_MS,
                         f'p99 {np.percentile(taking, 99) * 1e6:.0f} us over {len(taking)} takes')]
-    return results
+    return interference + results
 
 
 REPLAY_DRIVE = 120.0  # [s] of aggressive driving per replay case, 100 Hz (issue 34 times identify on 120 s)

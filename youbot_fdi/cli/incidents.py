@@ -51,15 +51,18 @@ def run(args):
         print(f'{folder}: no incidents')
         return 0
     total = sum(i.size_bytes for i in incidents)
-    print(f'{folder}: {len(incidents)} incidents, {total / MEGABYTE:.1f} MB')
-    print(f'  {"time (UTC)":<29} {"wheel":<16} {"fault":<15} {"size":>8}  state     replayed')
+    count = f'{len(incidents)} incident' + ('s' if len(incidents) != 1 else '')
+    print(f'{folder}: {count}, {total / MEGABYTE:.1f} MB')
+    print(f'  {"time (UTC)":<29} {"wheel":<16} {"fault":<15} {"size":>8}  state     '
+          + ('' if args.no_pages else 'replayed   page'))
     for incident in incidents:
         state = 'complete' if incident.complete else 'cut'
         replayed = ''
         if not args.no_pages:
             try:
                 path, same = page(incident)
-                replayed = f'{"same alarm" if same else "DIFFERENT"}  {path}'
+                shown = path.relative_to(folder) if path.is_relative_to(folder) else path
+                replayed = f'{"same alarm" if same else "DIFFERENT":<11}{shown}'
             except RecordingError as err:
                 replayed = f'unreadable: {err}'
         print(f'  {incident.time:<29} {incident.wheel:<16} {incident.fault:<15} '

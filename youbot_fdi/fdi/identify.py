@@ -35,11 +35,11 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 import scipy.optimize
-import scipy.signal
 
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi import alarm_rate
 from youbot_fdi.fdi.learned import fit_torque_correction, inertial_feature
+from youbot_fdi.fdi.recursions import savgol_filter
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, bound_weights, FAMILIES, ResidualEvaluator,
                                       ResidualGenerator, ResidualSpread)
 from youbot_fdi.fdi.settings import FdiSettings
@@ -139,7 +139,7 @@ def require_samples(count, source=''):
 def _smooth(values, dt, deriv=0):
     """Savitzky-Golay smoothing (or derivative) along time; the window shrinks for short data."""
     window = min(SAVGOL_WINDOW, len(values) if len(values) % 2 else len(values) - 1)
-    return scipy.signal.savgol_filter(values, window, SAVGOL_ORDER, deriv=deriv, delta=dt, axis=0)
+    return savgol_filter(values, window, SAVGOL_ORDER, deriv=deriv, delta=dt)
 
 
 def evenly_sampled(time, interval):

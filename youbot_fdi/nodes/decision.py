@@ -33,7 +33,7 @@ from std_srvs.srv import Trigger
 
 from youbot_fdi.app.config import configure, residual_data_for
 from youbot_fdi.app.incidents import IncidentRecorder, IncidentSettings, RECORDED_TOPICS, RunContext
-from youbot_fdi.faults import Level
+from youbot_fdi.faults import CONDITIONS, Level
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.residuals import ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
@@ -182,6 +182,8 @@ class DecisionNode(Node):
     def _open_incidents(self, events):
         """An incident for each new alarm episode among ``events``."""
         for event in events:
+            if event.fault in CONDITIONS:  # the base's load and range conditions: WARNs, not alarms
+                continue
             if event.level != Level.ERROR:
                 if event.level == Level.OK:
                     self._alarmed.discard(event.wheel)
