@@ -140,11 +140,12 @@ INCIDENT_ROUNDS = 3
 
 
 def bench_incident_recorder(seconds=5.0, progress=None, period=INCIDENT_PERIOD,
-                            rounds=INCIDENT_ROUNDS):
+                            rounds=INCIDENT_ROUNDS, cases=None):
     """The composed suite at 100 Hz without its incident recorder, with it and no alarm, and with
     it opening an incident every ``period`` [s], the three in turn ``rounds`` times: {case:
     (median CPU share, latencies [s], durations of the recorder's callback [s] (empty without),
-    incidents written, writer thread CPU [s])}."""
+    incidents written, writer thread CPU [s])}. ``cases`` {name: (recorder enabled, incident
+    period [s] or None)} replaces the three, run in its order."""
     from rclpy.parameter import Parameter
 
     from youbot_fdi.app.incidents import list_incidents
@@ -159,7 +160,7 @@ def bench_incident_recorder(seconds=5.0, progress=None, period=INCIDENT_PERIOD,
     script = DriveScript((Segment('forward', (0.3, 0.0, 0.0), 2.0), Segment('turn', (0.1, 0.2, 0.8), 2.0)))
     factories = list(LAYOUTS['separate'][:-1])
     fdi_names = [node_name(f) for f in LAYOUTS['separate']]
-    cases = {'without': (False, None), 'no alarm': (True, None), 'alarms': (True, period)}
+    cases = cases or {'without': (False, None), 'no alarm': (True, None), 'alarms': (True, period)}
     runs = {case: [] for case in cases}
     with tempfile.TemporaryDirectory() as tmp:
         record_drive(f'{tmp}/rec', model, script)
