@@ -87,6 +87,7 @@ def test_incident_holds_the_window_around_the_alarm(tmp_path):
     sidecar = read_sidecar(incident.path)
     assert sidecar['ended'] == 'after' and sidecar['messages'][JOINT_STATES] == len(stamps)
     assert sidecar['software']['youbot_fdi'] and sidecar['event']['fault'] == 'torque_loss'
+    assert sidecar['window']['recorded_before_s'] == pytest.approx(2.0, abs=1e-6)
     assert any('incident:' in line for line in logged)
 
 
@@ -97,6 +98,7 @@ def test_incident_cut_by_shutdown_keeps_what_came(tmp_path):
     recorder.close()
     [incident] = list_incidents(tmp_path)
     assert read_sidecar(incident.path)['ended'] == 'shutdown'
+    assert read_sidecar(incident.path)['window']['recorded_before_s'] == pytest.approx(1.0, abs=1e-6)
     stamps = recorded_stamps(incident.path)
     assert stamps[0] == pytest.approx(1.0, abs=1e-6) and stamps[-1] == pytest.approx(2.99, abs=1e-6)
 

@@ -284,7 +284,12 @@ class IncidentRecorder:
                                   'settings': SETTINGS_COPY},
                    'complete': False}
         start_ns = time_ns - int(self.settings.incident_before * NANOSECONDS)
-        self._queue.put(('open', incident.number, (path, sidecar, self.ring.since(start_ns))))
+        before = self.ring.since(start_ns)
+        # What the ring held ahead of the alarm [s]: less than incident_before right after the
+        # node started (a replay then has less time to settle before the alarm).
+        sidecar['window']['recorded_before_s'] = round((time_ns - before[0][1]) / NANOSECONDS, 3) \
+            if before else 0.0
+        self._queue.put(('open', incident.number, (path, sidecar, before)))
         self._active.append(incident)
         self._next_end = min(i.end_ns for i in self._active)
         self.opened += 1

@@ -263,6 +263,13 @@ def _incident_figure(model, data, evidence, sidecar, events):
     return buffer.getvalue()
 
 
+def _held(entry, family):
+    """' (held)' for an alarm the decision still holds with its evidence below the threshold
+    (it is released after ``release_time`` of excited samples below it)."""
+    alarmed = family in entry.get('alarm', ())
+    return ' (held)' if alarmed and entry['evidence'][family] < 1.0 else ''
+
+
 def _freeze_frame_table(freeze):
     """The freeze-frame as an HTML table: per wheel and family, residual / bound and evidence."""
     header = ''.join(f'<th>{f}: r / u</th><th>evidence</th>' for f in FAMILIES)
@@ -272,7 +279,7 @@ def _freeze_frame_table(freeze):
             f'<td>{entry.get("residual", {}).get(f, float("nan")):.4g} / '
             f'{entry.get("bound", {}).get(f, float("nan")):.4g}</td>'
             f'<td{" style=color:red" if f in entry.get("alarm", ()) else ""}>'
-            f'{entry["evidence"][f]:.2f}</td>' for f in FAMILIES)
+            f'{entry["evidence"][f]:.2f}{_held(entry, f)}</td>' for f in FAMILIES)
         rows += f'<tr><td>{html.escape(suffix)}</td>{cells}</tr>'
     return f'<table><tr><th>wheel</th>{header}</tr>{rows}</table>'
 
@@ -298,7 +305,9 @@ def write_incident_page(folder, model, pipeline, events, sidecar):
             f'td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style></head><body>'
             f'<h1>{html.escape(str(event.get("fault")))} on {html.escape(str(event.get("wheel") or "base"))}</h1>'
             f'<p>{html.escape(folder.name)}: alarm at stamp {float(event.get("stamp", 0.0)):.3f} s '
-            f'({html.escape(str(event.get("detail", "")))}); load factor '
+            f'({html.escape(str(event.get("detail", "")))}), recorded from '
+            f'{float((sidecar.get("window") or {}).get("recorded_before_s", float("nan"))):.1f} s '
+            f'before it; load factor '
             f'{freeze.get("load_factor", float("nan"))}, load condition '
             f'{html.escape(str(freeze.get("load_condition", "")))}.</p>'
             f'<p>Ran with youbot_fdi {html.escape(str((sidecar.get("software") or {}).get("youbot_fdi")))}, '
@@ -306,7 +315,9 @@ def write_incident_page(folder, model, pipeline, events, sidecar):
             f'{html.escape(str(parameters.get("params_file") or "(none: profile defaults)"))} '
             f'{html.escape(str(parameters.get("params_sha256", ""))[:12])}; recording '
             f'{"complete" if sidecar.get("complete") else "cut short (read to its damage)"}.</p>'
-            f'<h2>Freeze-frame at the alarm (as the robot saw it)</h2>{_freeze_frame_table(freeze)}'
+            f'<h2>Freeze-frame at the alarm (as the robot saw it)</h2>'
+            f'<p>Residual r against its bound u, and the evidence in thresholds (an alarm from 1; '
+            f'red: an alarm the decision holds).</p>{_freeze_frame_table(freeze)}'
             f'<h2>Replayed here: {"the same alarm" if same else "NOT the same alarm"}</h2>'
             f'<table><tr><th>stamp [s]</th><th>level</th><th>wheel</th><th>fault</th><th>detail</th>'
             f'</tr>{rows}</table>{image}</body></html>')
