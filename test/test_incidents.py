@@ -243,3 +243,19 @@ def test_an_incident_replays_to_its_alarm_lists_and_joins_a_fleet(tmp_path):
     assert found.robot == 'robot_a'
     row = analyse(found, None, tmp_path / 'fleet', 0.5)
     assert row['status'] == 'ok' and 'torque_loss@wheel_joint_fr' in row['faults']
+
+
+def test_an_unwritable_folder_is_logged_and_the_recorder_goes_on(tmp_path):
+    """A folder that cannot be created (here a file stands in its way; a full disk alike) costs
+    the incident, said in the log, never the FDI: the recorder keeps recording and closes."""
+    blocked = tmp_path / 'not_a_folder'
+    blocked.write_text('')
+    logged = []
+    settings = IncidentSettings(incident_dir=str(blocked / 'incidents'), incident_before=0.5,
+                                incident_after=0.5)
+    recorder = IncidentRecorder(settings, RunContext(), log=logged.append)
+    feed(recorder, 0.0, 3.0, open_at=[1.0, 2.0])
+    assert recorder.flush()
+    recorder.close()
+    assert sum('incident recorder: open failed' in line for line in logged) == 2
+    assert list_incidents(tmp_path) == []
