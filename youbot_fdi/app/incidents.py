@@ -9,10 +9,11 @@ evidence, load factor; the software version, the parameter file and its hash) wi
 the parameter file and the FDI settings in use, so ``youbot-fdi replay INCIDENT`` reproduces the
 alarm with what the robot ran.
 
-Live cost: a callback only appends a reference to its message to a deque (and, while an
-incident is open, to the writer's queue); all file work happens in the writer thread, which
-writes in small slices and yields between them so a callback never waits long for the
-interpreter lock (``youbot-fdi bench --live`` measures both).
+Live cost: the node takes what the recorded topics received every 0.1 s (no callback per
+message) and appends references to the messages to a deque (and, while an incident is open,
+hands the batch to the writer's queue); all file work happens in the writer thread, which writes
+in slices and yields between them so a callback never waits long for the interpreter lock
+(``youbot-fdi bench`` measures both: the recorder's CPU and the longest hold-up).
 
 Durability: the sidecar is written first (``complete: false``), then the messages, with the
 writer's chunk closed and flushed every ``FLUSH_INTERVAL`` of recorded time; on kill -9 only the
@@ -57,7 +58,8 @@ BYTES_PER_MEGABYTE = 1_000_000
 #: time [s]: what a kill -9 can cut from the incident being written.
 FLUSH_INTERVAL = 1.0
 #: Messages the writer thread writes before it yields the interpreter lock (sleep(0)): about
-#: 0.2 ms of work on the 2-core dev machine, so a callback waiting for the lock waits no longer.
+#: 0.3 ms of work on the 2-core dev machine (rosbags writes one in 2.5 µs), so a callback
+#: waiting for the lock waits about that long (measured: at most 0.4 ms, docs/fdi.md).
 WRITE_SLICE = 128
 #: How long closing waits for the writer to finish what is queued [s].
 CLOSE_TIMEOUT = 10.0
