@@ -39,6 +39,7 @@ import scipy.optimize
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi import alarm_rate
 from youbot_fdi.fdi.learned import fit_torque_correction, inertial_feature
+from youbot_fdi.fdi.observer import ModelObserver
 from youbot_fdi.fdi.recursions import savgol_filter
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, bound_weights, FAMILIES, ResidualEvaluator,
                                       ResidualGenerator, ResidualSpread)
@@ -380,14 +381,33 @@ def run_generator(model, arrays, settings):
                                   np.searchsorted(command_batch.stamp, arrays.time, side='right'))
 
 
+def run_command_path(model, arrays, settings):
+    """(stamps (M,) [s], speeds (M, n) [rad/s]) the command path predicts over the whole
+    recording: the generator's ``command_speed`` without its residuals (the searches call this
+    tens of times; the residuals and bounds are a fifth of a generator's run). The rows that
+    restart are left out, as the generator leaves them out."""
+    signs = model.kinematics.drive_signs
+    joints = JointBatch(arrays.time, signs * arrays.position, signs * arrays.velocity, signs * arrays.torque)
+    if not joints.complete().all():  # missing readings: the generator's own split
+        batch = run_generator(model, arrays, settings)
+        return batch.stamp, batch.command_speed
+    command_batch = arrays.command_batch
+    predictions = ModelObserver(model, settings).update_batch(
+        joints, command_batch, np.searchsorted(command_batch.stamp, arrays.time, side='right'))
+    kept = ~predictions.restart
+    return predictions.stamp[kept], predictions.from_commands[kept]
+
+
 def simulate_from_commands(model, arrays, input_delay=0.0, batch=None):
     """Wheel speeds predicted from the commands through the firmware loop (§5.2.3), the commands
     acting ``input_delay`` [s] after their stamps; from ``batch`` (the generator already run over
     ``arrays`` with that delay) where given."""
     if batch is None:
-        batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
+        stamp, speed = run_command_path(model, arrays, FdiSettings(input_delay=input_delay))
+    else:
+        stamp, speed = batch.stamp, batch.command_speed
     predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
-    predicted[np.searchsorted(arrays.time, batch.stamp)] = batch.command_speed
+    predicted[np.searchsorted(arrays.time, stamp)] = speed
     return predicted
 
 
