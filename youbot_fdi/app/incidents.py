@@ -40,7 +40,9 @@ from collections.abc import Callable
 import yaml
 
 from youbot_fdi.errors import ConfigError
+from youbot_fdi.faults import Level
 from youbot_fdi.naming import wheel_suffix
+from youbot_fdi.yamlio import load_yaml
 from youbot_fdi.topics import CMD_VEL, DIAGNOSTICS, FAULTS, JOINT_STATES, REACTIONS, WHEEL_COMMANDS
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -167,15 +169,15 @@ def incident_folders(root: Path) -> list[Path]:
 
 
 def prune(root: Path, max_count: int, max_bytes: float, log: Callable[[str], None],
-          room_bytes: float = 0.0, keep: Path | None = None) -> list[Path]:
-    """Remove the oldest incidents of ``root`` (never ``keep``) until fewer than ``max_count``
-    remain and they leave ``room_bytes`` of ``max_bytes`` (room for one more); returns what was
-    removed."""
+          room_count: int = 0, room_bytes: float = 0.0, keep: Path | None = None) -> list[Path]:
+    """Remove the oldest incidents of ``root`` (never ``keep``) until, with room for
+    ``room_count`` more of ``room_bytes``, they are at most ``max_count`` and ``max_bytes``;
+    returns what was removed."""
     folders = [p for p in incident_folders(root) if p != keep]
     sizes = [folder_bytes(p) for p in folders]
     kept = (1, folder_bytes(keep)) if keep is not None and keep.is_dir() else (0, 0)
     removed = []
-    while folders and (len(folders) + kept[0] >= max_count
+    while folders and (len(folders) + kept[0] + room_count > max_count
                        or sum(sizes) + kept[1] + room_bytes > max_bytes):
         oldest, size = folders.pop(0), sizes.pop(0)
         shutil.rmtree(oldest, ignore_errors=True)
@@ -211,8 +213,7 @@ class IncidentRecorder:
         self.ring = MessageRing(settings.incident_before)
         self._active: list[_Incident] = []
         self._next_end = None  # the earliest end [ns] of an open incident
-        self._numbers = 0
-        self.opened = 0
+        self.opened = 0  # incidents opened (each one's number in the writer's jobs)
         self.dropped = 0  # incidents removed by the budget
         self.writer_cpu = 0.0  # CPU time the writer thread spent on its jobs [s]
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -264,7 +265,7 @@ class IncidentRecorder:
     def open(self, event: dict, time_ns: int, freeze_frame: dict) -> Path:
         """Start the incident of a new alarm ``event`` (a fault event as a dict) confirmed at
         ``time_ns`` with the decision's ``freeze_frame``; returns its folder."""
-        self._numbers += 1
+        self.opened += 1
         end_ns = time_ns + int(self.settings.incident_after * NANOSECONDS)
         name = incident_name(event, time_ns)
         path = self.root / name
@@ -272,7 +273,7 @@ class IncidentRecorder:
         while path.exists() or any(i.path == path for i in self._active):
             suffix += 1
             path = self.root / f'{name}_{suffix}'
-        incident = _Incident(self._numbers, path, end_ns)
+        incident = _Incident(self.opened, path, end_ns)
         event = json.loads(json.dumps(event))  # plain YAML types (levels are str enums)
         sidecar = {'event': event, 'alarm_time_ns': time_ns,
                    'window': {'before_s': self.settings.incident_before,
@@ -294,7 +295,6 @@ class IncidentRecorder:
         self._queue.put(('open', incident.number, (path, sidecar, before)))
         self._active.append(incident)
         self._next_end = min(i.end_ns for i in self._active)
-        self.opened += 1
         return path
 
     def close(self, timeout: float = CLOSE_TIMEOUT) -> None:
@@ -322,6 +322,12 @@ class IncidentRecorder:
         window = self.settings.incident_before + self.settings.incident_after
         return sum(len(item[2]) for item in before) * window / max(span, 1.0 / NANOSECONDS)
 
+    def _hold_budget(self, **room) -> None:
+        """:func:`prune` the folder to the settings' budget (``room``: its room and keep)."""
+        self.dropped += len(prune(self.root, self.settings.incident_max_count,
+                                  self.settings.incident_max_megabytes * BYTES_PER_MEGABYTE,
+                                  self.log, **room))
+
     def _run(self) -> None:
         writers: dict[int, _IncidentWriter] = {}
         while True:
@@ -336,10 +342,7 @@ class IncidentRecorder:
                         writers[number].write(payload)
                 elif kind == 'open':
                     path, sidecar, messages = payload
-                    self.dropped += len(prune(
-                        self.root, self.settings.incident_max_count,
-                        self.settings.incident_max_megabytes * BYTES_PER_MEGABYTE, self.log,
-                        room_bytes=self._expected_bytes(messages)))
+                    self._hold_budget(room_count=1, room_bytes=self._expected_bytes(messages))
                     writers[number] = _IncidentWriter(path, sidecar, self.topics, self.context,
                                                       self.typestore)
                     writers[number].write(messages)
@@ -351,10 +354,7 @@ class IncidentRecorder:
                         writer.close(payload)
                         # The estimate at its start may have been short (the sidecar, the
                         # recording's index): the budget is held again now it is whole.
-                        self.dropped += len(prune(
-                            self.root, self.settings.incident_max_count + 1,
-                            self.settings.incident_max_megabytes * BYTES_PER_MEGABYTE, self.log,
-                            keep=writer.path))
+                        self._hold_budget(keep=writer.path)
                 elif kind == 'done':
                     payload.set()
             except Exception as err:  # noqa: BLE001 - a full disk must not stop the FDI
@@ -460,7 +460,7 @@ def read_sidecar(path) -> dict:
     """An incident's sidecar (``incident.yaml``) as a mapping; ConfigError if unreadable."""
     sidecar = Path(path) / SIDECAR
     try:
-        data = yaml.safe_load(sidecar.read_text())
+        data = load_yaml(sidecar.read_text())
     except (OSError, yaml.YAMLError) as err:
         msg = f'{sidecar}: cannot read the incident sidecar: {err}'
         raise ConfigError(msg) from err
@@ -468,6 +468,14 @@ def read_sidecar(path) -> dict:
         msg = f'{sidecar}: not an incident sidecar (no event)'
         raise ConfigError(msg)
     return data
+
+
+def replays_alarm(sidecar: dict, events) -> bool:
+    """True when the replayed ``events`` hold the incident's alarm: an ERROR of its fault on its
+    wheel."""
+    alarm = sidecar['event']
+    return any(e.level == Level.ERROR and e.wheel == alarm.get('wheel') and e.fault == alarm.get('fault')
+               for e in events)
 
 
 def is_incident(path) -> bool:

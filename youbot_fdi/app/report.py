@@ -6,6 +6,7 @@ import html
 
 import numpy as np
 
+from youbot_fdi.app.incidents import replays_alarm
 from youbot_fdi.faults import Level
 from youbot_fdi.fdi.residuals import FAMILIES
 from youbot_fdi.naming import wheel_suffix
@@ -294,8 +295,7 @@ def write_incident_page(folder, model, pipeline, events, sidecar):
     event = sidecar['event']
     freeze = sidecar.get('freeze_frame') or {}
     parameters = sidecar.get('parameters') or {}
-    replayed = [e for e in events if e.level == Level.ERROR]
-    same = any(e.wheel == event.get('wheel') and e.fault == event.get('fault') for e in replayed)
+    same = replays_alarm(sidecar, events)
     rows = ''.join(f'<tr><td>{e.stamp:.3f}</td><td>{e.level}</td><td>{html.escape(str(e.wheel))}'
                    f'</td><td>{e.fault}</td><td>{html.escape(e.detail)}</td></tr>' for e in events)
     image = (f'<img src="data:image/png;base64,{base64.b64encode(png).decode()}" '

@@ -131,7 +131,7 @@ def run_live(progress, soak_minutes=SOAK_MINUTES, faults=None, wheels=None):
 
 def incident_figures(folder):
     """What the soak's incident folder holds at the end, against its budget (text)."""
-    from youbot_fdi.app.incidents import list_incidents
+    from youbot_fdi.app.incidents import BYTES_PER_MEGABYTE, list_incidents
     from youbot_fdi.bag.reader import RecordingError, RecordingReader
     from youbot_fdi.model import load_model
     names = load_model('youbot').wheel_names
@@ -143,7 +143,7 @@ def incident_figures(folder):
                 readable += sum(len(chunk.joints) for chunk in reader.chunks()) > 0
         except RecordingError:
             pass
-    size = sum(i.size_bytes for i in kept) / 1e6
+    size = sum(i.size_bytes for i in kept) / BYTES_PER_MEGABYTE
     verdict = 'holds' if len(kept) <= INCIDENT_BUDGET else 'EXCEEDED'
     return (f'Incidents of every run in one folder (budget {INCIDENT_BUDGET}): {len(kept)} kept '
             f'({size:.1f} MB), {sum(i.complete for i in kept)} complete, {readable} readable; '

@@ -1,10 +1,10 @@
 """``youbot-fdi incidents``: list the incident recordings of a folder, with a page for each."""
 from pathlib import Path
+import sys
 
 from youbot_fdi.cli.status import ERROR
 
 NAME = 'incidents'
-MEGABYTE = 1_000_000
 
 
 def add_parser(subparsers):
@@ -26,25 +26,23 @@ def page(incident):
     """Replay ``incident`` (an IncidentSummary) with its own parameters and write its page;
     returns (page path, whether the replay gave the same alarm)."""
     from youbot_fdi.app.config import build_pipeline
-    from youbot_fdi.app.incidents import incident_parameters, read_sidecar
+    from youbot_fdi.app.incidents import incident_parameters, read_sidecar, replays_alarm
     from youbot_fdi.app.replay import replay_recording
     from youbot_fdi.app.report import write_incident_page
-    from youbot_fdi.faults import Level
     params, fdi_config = incident_parameters(incident.path)
     model, pipeline = build_pipeline(params, fdi_config, keep_frames=True)
     events = replay_recording(pipeline, incident.path).events
     sidecar = read_sidecar(incident.path)
-    same = any(e.level == Level.ERROR and e.wheel == sidecar['event'].get('wheel')
-               and e.fault == sidecar['event'].get('fault') for e in events)
-    return write_incident_page(incident.path, model, pipeline, events, sidecar), same
+    return (write_incident_page(incident.path, model, pipeline, events, sidecar),
+            replays_alarm(sidecar, events))
 
 
 def run(args):
-    from youbot_fdi.app.incidents import list_incidents
+    from youbot_fdi.app.incidents import BYTES_PER_MEGABYTE, list_incidents
     from youbot_fdi.bag.reader import RecordingError
     folder = Path(args.folder)
     if not folder.exists():
-        print(f'youbot-fdi incidents: error: {folder} does not exist')
+        print(f'youbot-fdi incidents: error: {folder} does not exist', file=sys.stderr)
         return ERROR
     incidents = list_incidents(folder)
     if not incidents:
@@ -52,7 +50,7 @@ def run(args):
         return 0
     total = sum(i.size_bytes for i in incidents)
     count = f'{len(incidents)} incident' + ('s' if len(incidents) != 1 else '')
-    print(f'{folder}: {count}, {total / MEGABYTE:.1f} MB')
+    print(f'{folder}: {count}, {total / BYTES_PER_MEGABYTE:.1f} MB')
     print(f'  {"time (UTC)":<29} {"wheel":<16} {"fault":<15} {"size":>8}  state     '
           + ('' if args.no_pages else 'replayed   page'))
     for incident in incidents:
@@ -66,5 +64,5 @@ def run(args):
             except RecordingError as err:
                 replayed = f'unreadable: {err}'
         print(f'  {incident.time:<29} {incident.wheel:<16} {incident.fault:<15} '
-              f'{incident.size_bytes / MEGABYTE:6.2f}MB  {state:<9} {replayed}')
+              f'{incident.size_bytes / BYTES_PER_MEGABYTE:6.2f}MB  {state:<9} {replayed}')
     return 0

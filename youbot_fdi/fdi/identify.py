@@ -370,15 +370,20 @@ def simulate_from_currents(model, arrays):
     return predicted
 
 
-def run_generator(model, arrays, settings):
-    """The residual generator over the whole recording in one block; a command counts as received
-    before the joint states stamped at or after it. Returns a ResidualBatch."""
+def _block(model, arrays):
+    """The recording as one block for the generator or its observer: (joints in the driver's
+    convention, commands, how many commands came before each sample: a command counts as
+    received before the joint states stamped at or after it)."""
     signs = model.kinematics.drive_signs
     command_batch = arrays.command_batch
-    generator = ResidualGenerator(model, settings)
     joints = JointBatch(arrays.time, signs * arrays.position, signs * arrays.velocity, signs * arrays.torque)
-    return generator.update_batch(joints, command_batch,
-                                  np.searchsorted(command_batch.stamp, arrays.time, side='right'))
+    return joints, command_batch, np.searchsorted(command_batch.stamp, arrays.time, side='right')
+
+
+def run_generator(model, arrays, settings):
+    """The residual generator over the whole recording in one block (:func:`_block`). Returns a
+    ResidualBatch."""
+    return ResidualGenerator(model, settings).update_batch(*_block(model, arrays))
 
 
 def run_command_path(model, arrays, settings):
@@ -386,14 +391,11 @@ def run_command_path(model, arrays, settings):
     recording: the generator's ``command_speed`` without its residuals (the searches call this
     tens of times; the residuals and bounds are a fifth of a generator's run). The rows that
     restart are left out, as the generator leaves them out."""
-    signs = model.kinematics.drive_signs
-    joints = JointBatch(arrays.time, signs * arrays.position, signs * arrays.velocity, signs * arrays.torque)
+    joints, commands, before = _block(model, arrays)
     if not joints.complete().all():  # missing readings: the generator's own split
-        batch = run_generator(model, arrays, settings)
+        batch = ResidualGenerator(model, settings).update_batch(joints, commands, before)
         return batch.stamp, batch.command_speed
-    command_batch = arrays.command_batch
-    predictions = ModelObserver(model, settings).update_batch(
-        joints, command_batch, np.searchsorted(command_batch.stamp, arrays.time, side='right'))
+    predictions = ModelObserver(model, settings).update_batch(joints, commands, before)
     kept = ~predictions.restart
     return predictions.stamp[kept], predictions.from_commands[kept]
 

@@ -156,6 +156,14 @@ class TimingReport:
         self.publisher.publish(array)
 
 
+def unspun_node(owner, suffix):
+    """A node beside ``owner`` (named ``<owner>_<suffix>``, same namespace and context) that no
+    executor spins: its subscriptions are read on demand, with no callback per message."""
+    return rclpy.create_node(f'{owner.get_name()}_{suffix}', namespace=owner.get_namespace(),
+                             context=owner.context, start_parameter_services=False,
+                             enable_rosout=False)
+
+
 class NewestMessage:
     """The newest message on a topic, read when asked, at no cost per message.
 
@@ -170,9 +178,7 @@ class NewestMessage:
                      history=HistoryPolicy.KEEP_LAST)
 
     def __init__(self, owner, msg_type, topic):
-        self._node = rclpy.create_node(f'{owner.get_name()}_watch', namespace=owner.get_namespace(),
-                                       context=owner.context, start_parameter_services=False,
-                                       enable_rosout=False)
+        self._node = unspun_node(owner, 'watch')
         self._subscription = self._node.create_subscription(msg_type, topic, lambda _msg: None,
                                                             self.QOS)
 
@@ -200,9 +206,7 @@ class BufferedTopics:
 
     def __init__(self, owner, topics, depth):
         """``topics``: {topic: message class}; ``depth`` [messages] kept per topic between takes."""
-        self._node = rclpy.create_node(f'{owner.get_name()}_buffer', namespace=owner.get_namespace(),
-                                       context=owner.context, start_parameter_services=False,
-                                       enable_rosout=False)
+        self._node = unspun_node(owner, 'buffer')
         qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT,
                          history=HistoryPolicy.KEEP_LAST)
         self._subscriptions = [(topic, self._node.create_subscription(msg_type, topic,
@@ -211,7 +215,7 @@ class BufferedTopics:
                                for topic, msg_type in topics.items()]
 
     def take(self):
-        """Every message received since the last take as (receive time [ns], topic, bytes),
+        """Every message received since the last take as (topic, receive time [ns], bytes),
         oldest first."""
         taken = []
         for topic, subscription in self._subscriptions:
@@ -220,8 +224,8 @@ class BufferedTopics:
                     message = subscription.handle.take_message(subscription.msg_type, True)
                     if not message:
                         break
-                    taken.append((message[1]['received_timestamp'], topic, message[0]))
-        taken.sort(key=lambda item: item[0])
+                    taken.append((topic, message[1]['received_timestamp'], message[0]))
+        taken.sort(key=lambda item: item[1])
         return taken
 
     def close(self):

@@ -111,8 +111,7 @@ class DecisionNode(Node):
     def take_recorded(self):
         """Move what the recorded topics received into the incident recorder (its ring buffer
         and open incidents), and close the incidents whose time is up."""
-        self.recorder.record_batch([(topic, time_ns, data)
-                                    for time_ns, topic, data in self._buffer.take()])
+        self.recorder.record_batch(self._buffer.take())
         self.recorder.poll(time.time_ns())
 
     def on_residuals(self, msg):
