@@ -195,7 +195,8 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
     ranges = {f'{family}_feature_range' for family in families}
     assert set(profile.fdi) == learned | ranges | {'sample_interval', 'contact_share_floor',
                                                    'speed_sigma', 'calibrated_effort',
-                                                   'calibrated_speed_range', 'family_thresholds',
+                                                   'calibrated_speed_range', 'calibrated_slip',
+                                                   'family_thresholds',
                                                    'shift_threshold'}
     assert profile.fdi['contact_share_floor'] == 0.0  # per-wheel friction: no contact law to bound
     assert profile.identification['friction_sweep']['rmse']

@@ -332,3 +332,31 @@ def test_a_command_that_comes_after_samples_it_was_in_force_for_is_counted_late(
     np.testing.assert_allclose(prediction.from_commands, model.kinematics.drive_signs * speeds)
     following = observer.update(JointSample(0.05, np.zeros(4), speeds, np.zeros(4)))
     assert not mask_wheels(following.resynced, 4).any()
+
+
+def test_wheels_whose_speeds_fit_no_motion_slip_for_as_long_and_the_breakaway_after(model):
+    """Speeds of a rigid motion never slip, however fast; a part no motion explains (the
+    kinematics' null space) slips beyond the calibrated slip widened by its margin plus three
+    speed_sigma (1.1 x 0.05 + 0.03 = 0.085 rad/s), and the base catches up for breakaway_time
+    after; a row at a time gives the same rows. A base of three wheels always fits a motion."""
+    settings = replace(FdiSettings(), calibrated_slip=0.05, speed_sigma=0.01)
+    assert (settings.calibration_range_margin, settings.breakaway_time) == (0.1, 0.2)
+    evaluator = ResidualEvaluator(model, settings)
+    assert evaluator.slip_limit == pytest.approx(0.085)
+    null = np.linalg.svd(model.kinematics.jacobian.T)[2][-1]  # orthogonal to every motion's speeds
+    null = null / np.abs(null).max()
+    rigid = model.kinematics.inverse(np.array([0.8, -0.5, 2.0]))  # a fast motion: no slip
+    extra = np.zeros(40)
+    extra[5], extra[10] = 0.08, 0.09  # under, then over the limit
+    speeds = rigid + extra[:, None] * null
+    stamps = 10.0 + 0.01 * np.arange(40)
+    expected = (stamps >= stamps[10] - 1e-9) & (stamps - stamps[10] < 0.2 - 1e-9)
+    assert evaluator.slipping(speeds, stamps).tolist() == expected.tolist()
+    one_by_one = ResidualEvaluator(model, settings)
+    rows = [bool(one_by_one.slipping(speeds[k:k + 1], stamps[k:k + 1])[0]) for k in range(40)]
+    assert rows == expected.tolist()
+    assert not ResidualEvaluator(model, FdiSettings()).slipping(speeds, stamps).any()  # inf: none
+    robotino = load_model('robotino')
+    three = replace(FdiSettings(), calibrated_slip=0.0, speed_sigma=1e-6)
+    wild = np.random.default_rng(3).normal(0.0, 20.0, (50, 3))  # any speeds fit a motion
+    assert not ResidualEvaluator(robotino, three).slipping(wild, stamps[:1] + np.arange(50)).any()

@@ -55,7 +55,8 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.faults import FaultKind, Level, LOAD_CHANGE, UNSEEN_OPERATING_POINT
 from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
-from youbot_fdi.fdi.recursions import ExponentialAverage, bounded_cusum, cusum, last_true_value
+from youbot_fdi.fdi.recursions import (ExponentialAverage, NEVER, bounded_cusum, cusum,
+                                       last_true_value, shifted)
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualBatch
 from youbot_fdi.naming import wheel_suffix
 
@@ -69,7 +70,6 @@ TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'en
 #: Families judged against the other wheels, and the share of the threshold that counts as evidence.
 SHARED_FAMILIES = [TORQUE, COMMAND]
 SHARED_SHARE = 0.5
-NEVER = -1e300  # [s] the stamp of a rise that has not happened (finite: differences stay defined)
 LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
 AT_BOUND = 1.0  # the score |r| / u of a residual at its bound [-]
 MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name comm_loss, not a freeze
@@ -289,7 +289,8 @@ class DecisionMaker:
     def sample_weights(self, stamps: np.ndarray) -> np.ndarray:
         """The evidence weight of each row at ``stamps`` (N,) [s]: ``min(1, dt / evidence_interval)``
         with dt since the row before (1 for the first row after a start)."""
-        steps = np.diff(np.concatenate([[self._last_stamp], np.asarray(stamps, dtype=float)]))
+        stamps = np.asarray(stamps, dtype=float)
+        steps = stamps - shifted(self._last_stamp, stamps)
         interval = self.settings.evidence_interval
         weight = np.where(steps >= interval - STAMP_TOLERANCE, 1.0, steps / interval)  # stamps round
         return np.where(np.isfinite(weight) & (weight > 0.0), weight, 1.0)
@@ -355,7 +356,7 @@ class DecisionMaker:
         counts once half the memory holds samples (``SHIFT_KNOWN_LEVEL``).
         """
         stamps = np.asarray(stamps, dtype=float)
-        steps = np.diff(np.concatenate([[self._last_stamp], stamps]))
+        steps = stamps - shifted(self._last_stamp, stamps)
         memory = -np.expm1(-np.where(np.isnan(steps), 0.0, steps) / self.settings.shift_time_constant)
         present = np.isfinite(residual)
         residual = np.where(present, residual, 0.0)
@@ -486,8 +487,8 @@ class DecisionMaker:
         self._rise[SHARED_FAMILIES] = rise[-1]
         together = (up[..., None, :]
                     & (np.abs(rise[..., :, None] - rise[..., None, :]) <= s.shared_window))
-        rose_together = np.count_nonzero(together, axis=-1) * 2 >= self.n
-        co_occurring = (np.count_nonzero(up, axis=-1) * 2 >= self.n)[..., None]
+        rose_together = together.sum(axis=-1) * 2 >= self.n
+        co_occurring = (up.sum(axis=-1) * 2 >= self.n)[..., None]
         return rose_together | (co_occurring & (z < s.second_fault_score))
 
     def _load_events(self, stamps, factors):
@@ -536,7 +537,7 @@ class DecisionMaker:
         a torque or encoder alarm, a position frozen while moving (``position_frozen`` (N, n)
         counts), a wheel silent for ``data_timeout`` (``silent`` (N, n) [s]), or fewer than half
         the wheels off their command path."""
-        commands = np.count_nonzero(alarm[:, COMMAND], axis=1)
+        commands = alarm[:, COMMAND].sum(axis=1)
         return (alarm[:, TORQUE].any(axis=1) | alarm[:, ENCODER].any(axis=1)
                 | (position_frozen >= self.settings.frozen_samples).any(axis=1)
                 | self._silent(silent).any(axis=1)

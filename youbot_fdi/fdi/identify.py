@@ -621,6 +621,16 @@ def calibrated_speed_range(arrays, settings):
     return [float(q) for q in np.quantile(norm[moving], SPEED_QUANTILES)]
 
 
+def calibrated_slip(model, arrays):
+    """The largest wheel speed no rigid base motion explains [rad/s] over the recording's
+    complete rows (``Kinematics.slip_residual``; 0 for a base of three wheels), or inf without
+    enough of them."""
+    complete = np.isfinite(arrays.velocity).all(axis=1)
+    if complete.sum() < MIN_SAMPLES:
+        return math.inf
+    return float(np.abs(model.kinematics.slip_residual(arrays.velocity[complete])).max())
+
+
 def speed_noise(arrays):
     """The speed reading's noise [rad/s]: the robust spread of its second differences over the
     samples, sqrt(6) times the noise of independent errors (the motion's own curvature over two
@@ -818,6 +828,7 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     fdi['sample_interval'] = interval
     fdi['speed_sigma'] = settings.speed_sigma
     fdi['calibrated_speed_range'] = calibrated_speed_range(arrays, settings)
+    fdi['calibrated_slip'] = calibrated_slip(model, arrays)
     fdi['calibrated_effort'] = float(np.quantile(np.abs(arrays.torque[np.isfinite(arrays.torque)]),
                                                  RANGE_QUANTILE)) if np.isfinite(arrays.torque).any() \
         else math.inf

@@ -51,7 +51,8 @@ shared by the live nodes and ``replay``; :func:`fit_torque_correction` is the fi
 runs (ridge least squares, numpy only: no training dependency).
 """
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cache, cached_property
+
 
 import numpy as np
 
@@ -197,7 +198,13 @@ class TorqueCorrection:
 def wheel_mask(seen):
     """(...,) float: the wheels whose operating point was not seen (``seen`` (..., n) false) as
     a bit mask, bit w for wheel w (exact in a float for any wheel count a base has)."""
-    return np.logical_not(seen) @ 2.0 ** np.arange(np.shape(seen)[-1])
+    return np.logical_not(seen) @ _bits(np.shape(seen)[-1])
+
+
+@cache
+def _bits(n):
+    """The value of each wheel's bit, 2^w (n,) (made once per wheel count)."""
+    return 2.0 ** np.arange(n)
 
 
 def mask_wheels(mask, n):

@@ -37,7 +37,7 @@ from typing import NamedTuple, TYPE_CHECKING
 import numpy as np
 
 from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mask
-from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, nan_median,
+from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, nan_median, shifted,
                                        scalar_recursion)
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, JointBatch, VELOCITY
@@ -251,7 +251,7 @@ class ModelObserver:
         """Count the steps ``dt`` [s] (array) that restart the observer, by cause: a stamp going
         backwards, a stamp repeated (a duplicated sample), a gap longer than ``data_timeout``."""
         for name, rows in zip(STAMP_COUNTERS, (dt < 0.0, dt == 0.0, dt > self.settings.data_timeout)):
-            self.counters[name] += int(np.count_nonzero(rows))
+            self.counters[name] += int(rows.sum())
 
     def _discrete(self, dt):
         """(Phi, Gamma, Gamma^-1) over ``dt`` [s], cached per 0.1 ms."""
@@ -307,7 +307,7 @@ class ModelObserver:
         low, high = self.settings.calibrated_speed_range
         if low <= 0.0 and math.isinf(high):
             return 0.0
-        speed = np.linalg.norm(mean_speed, axis=-1, keepdims=True)
+        speed = np.sqrt((mean_speed * mean_speed).sum(axis=-1, keepdims=True))  # the norm
         if np.all((speed >= low) & (speed <= high)):  # within the range (usually): nothing missed
             return 0.0
         near = np.clip(speed, low, high)
@@ -393,7 +393,7 @@ class ModelObserver:
             known = CommandBatch(np.concatenate([known.stamp, commands.stamp]),
                                  np.concatenate([known.velocity_mode, commands.velocity_mode]),
                                  np.concatenate([known.values, self.signs * commands.values]))
-        if len(known) > 1 and np.any(np.diff(known.stamp) < 0.0):
+        if len(known) > 1 and (known.stamp[1:] < known.stamp[:-1]).any():
             order = np.argsort(known.stamp, kind='stable')
             known = CommandBatch(known.stamp[order], known.velocity_mode[order], known.values[order])
         delay = self.settings.input_delay
@@ -410,8 +410,8 @@ class ModelObserver:
         expired = stamp - (command_stamp + delay) > self.settings.command_timeout
         first_kept = int(index[-1]) if len(stamp) else len(known) - MAX_PENDING_COMMANDS
         first_kept = max(first_kept, len(known) - MAX_PENDING_COMMANDS, 0)
-        self._known_commands = CommandBatch(known.stamp[first_kept:], known.velocity_mode[first_kept:],
-                                            known.values[first_kept:])
+        self._known_commands = known if first_kept == 0 else CommandBatch(
+            known.stamp[first_kept:], known.velocity_mode[first_kept:], known.values[first_kept:])
         return velocity_mode | expired, np.where(expired[:, None], 0.0, values)
 
     # ------------------------------------------------------------------ state
@@ -588,7 +588,7 @@ class ModelObserver:
         load, friction = smoothed[..., :n], smoothed[..., n:]
         votes = np.abs(friction) >= self.settings.torque_sigma
         ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
-        voted = np.count_nonzero(votes, axis=-1) >= min(MIN_LOAD_VOTES, n)
+        voted = votes.sum(axis=-1) >= min(MIN_LOAD_VOTES, n)
         shared = nan_median(np.where(voted[..., None], ratio, 1.0))
         # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
         return np.maximum(shared, 0.0), voted
@@ -627,8 +627,8 @@ class ModelObserver:
         if first:
             self._restart(stamp[0], velocity[0], torque[0], velocity_mode[0], target[0])
         last_stamp, last_velocity, last_torque = self._last
-        prev_stamp = np.concatenate([[last_stamp], stamp[:-1]])
-        prev_velocity = np.concatenate([last_velocity[None], velocity[:-1]])
+        prev_stamp = shifted(last_stamp, stamp)
+        prev_velocity = shifted(last_velocity, velocity)
         dt = stamp - prev_stamp
         restart = ~((dt > 0.0) & (dt <= s.data_timeout))
         if first:
@@ -639,11 +639,11 @@ class ModelObserver:
         step = dt[:, None]
         explained, friction, coulomb, unseen, outside = self._explained(
             velocity, prev_velocity, phi, gamma_inv, step, torque,
-            np.concatenate([last_torque[None], torque[:-1]]))
+            shifted(last_torque, torque))
         torque = signed_torque(torque, explained, self.signed_effort)
         if not self.signed_effort and restart.any():  # as _restart signs it
             torque[restart] = signed_torque(torque[restart], velocity[restart], False)
-        prev_torque = np.concatenate([last_torque[None], torque[:-1]])
+        prev_torque = shifted(last_torque, torque)
         mean_torque = 0.5 * (torque + prev_torque)
         keep = self._smoothing(dt)
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
@@ -661,10 +661,10 @@ class ModelObserver:
         a[restart], b[restart] = 0.0, velocity[restart]
         observer_before = self._observer
         observer = affine_recursion(a, b, observer_before)
-        predicted = matvec(phi, np.concatenate([observer_before[None], observer[:-1]])) + forced
+        predicted = matvec(phi, shifted(observer_before, observer)) + forced
 
         beyond = self._beyond_current(torque)
-        was_beyond = np.concatenate([self._was_beyond[None], beyond[:-1]])
+        was_beyond = shifted(self._was_beyond, beyond)
         own = beyond | was_beyond  # a wheel beyond, and the row after
         # A command path judged without the command in force (it came late) rests on a state (the
         # loop's integral) built from the wrong command: it starts again from the measured state
@@ -688,8 +688,8 @@ class ModelObserver:
         batch = PredictionBatch(
             stamp=stamp, since=np.where(restart, np.nan, prev_stamp), restart=restart,
             from_currents=predicted, from_commands=speed,
-            commands_before=np.concatenate([command_before[None, :n], speed[:-1]]),
-            commanded=target, commanded_before=np.concatenate([self._last_target[None], target[:-1]]),
+            commands_before=shifted(command_before[:n], speed),
+            commanded=target, commanded_before=shifted(self._last_target, target),
             velocity_mode=velocity_mode, explained=explained, friction=friction,
             unseen_friction=unseen, load_factor=load, outside_calibration=outside,
             resynced=wheel_mask(~(own & (velocity_mode & ~restart)[:, None])))

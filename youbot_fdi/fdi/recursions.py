@@ -7,6 +7,19 @@ from __future__ import annotations
 
 import numpy as np
 
+#: The stamp [s] of something that has not happened (finite: differences stay defined).
+NEVER = -1e300
+
+
+def shifted(first, rows: np.ndarray) -> np.ndarray:
+    """Each of ``rows`` (N, ...) replaced by the one before it, ``first`` (...) before the first:
+    ``concatenate([first[None], rows[:-1]])``; for one row a view of ``first`` (the live path).
+    Neither is written to."""
+    first = np.asarray(first)
+    if len(rows) == 1:
+        return first[None]
+    return np.concatenate([first[None], rows[:-1]])
+
 
 def matvec(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """``matrices @ vectors`` row by row: (N, d, m) with (N, m) -> (N, d)."""
@@ -61,8 +74,13 @@ def nan_median(values: np.ndarray) -> np.ndarray:
     which costs a live sample more than the rest of the observer."""
     values = np.asarray(values, dtype=float)
     width = values.shape[-1]
+    if values.size == width:  # one row (the live path): the same median, in plain floats
+        known = sorted(v for v in values.reshape(-1).tolist() if v == v)
+        count = len(known)
+        median = (known[(count - 1) // 2] + known[count // 2]) / 2.0 if count else np.nan
+        return np.full(values.shape[:-1], median)
     ordered = np.sort(values, axis=-1).reshape(-1, width)  # NaN sort last
-    count = np.count_nonzero(~np.isnan(values), axis=-1).reshape(-1)
+    count = (~np.isnan(values)).sum(axis=-1).reshape(-1)
     rows = np.arange(len(count))
     low, high = ordered[rows, np.maximum((count - 1) // 2, 0)], ordered[rows, count // 2]
     return np.where(count > 0, (low + high) / 2.0, np.nan).reshape(values.shape[:-1])

@@ -35,7 +35,7 @@ for a block of samples (the replay); ``update`` (the live nodes) is a batch of o
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 from typing import TYPE_CHECKING
 
@@ -45,7 +45,7 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.learned import mask_wheels, wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.fdi.recursions import last_true_value, run_lengths, scalar_recursion
+from youbot_fdi.fdi.recursions import NEVER, last_true_value, run_lengths, scalar_recursion, shifted
 from youbot_fdi.samples import JointBatch
 from youbot_fdi.naming import wheel_suffix
 
@@ -107,9 +107,11 @@ PRIOR_SETTINGS = FdiSettings()
 def columns(*values: float | np.ndarray) -> np.ndarray:
     """The arrays (or scalars) ``values``, broadcast together, as the columns of one array
     (..., k): a bound's features (cheaper than stacking broadcast copies)."""
-    shapes = [np.shape(v) for v in values]
-    arrays = set(shapes) - {()}
-    shape = arrays.pop() if len(arrays) == 1 else np.broadcast_shapes(*shapes)
+    shape = ()
+    for value in values:
+        own = getattr(value, 'shape', ())  # a Python float has none
+        if own != shape and own:
+            shape = np.broadcast_shapes(shape, own) if shape else own
     out = np.empty(shape + (len(values),))
     for j, value in enumerate(values):
         out[..., j] = value
@@ -146,6 +148,9 @@ class ResidualFrame:
     #: speeds calibration did not see) [N·m]: the scale of the torque residual's shift, in which
     #: a steady bias cancels (None: the bound)
     torque_scale: np.ndarray = None
+    #: the batch of one this frame is (:meth:`ResidualBatch.frame`), which the decision takes as
+    #: it is instead of building it again (the live path); None for a frame made otherwise
+    batch: ResidualBatch | None = field(default=None, repr=False, compare=False)
 
     def names(self, wheel_names: Sequence[str]) -> list[str]:
         """Residual names in family-major order, e.g. ``torque_fl``."""
@@ -262,7 +267,8 @@ class ResidualBatch:
             position_frozen=self.position_frozen[k], silent=self.silent[k],
             torque_scale=self.torque_scale[k],
             load_factor=float(self.load_factor[k]),
-            outside_calibration=float(self.outside_calibration[k]))
+            outside_calibration=float(self.outside_calibration[k]),
+            batch=self if len(self.stamp) == 1 else None)
 
     def select(self, rows: np.ndarray | slice) -> ResidualBatch:
         """The rows ``rows`` (index array, mask or slice) as a batch."""
@@ -281,7 +287,9 @@ class ResidualBatch:
         """The :class:`ResidualFrame` s ``frames`` as one batch (a frame without a
         ``torque_scale`` has its torque bound as one; no command-path speed: NaN)."""
         frames = list(frames)
-        if len(frames) == 1:  # one frame (the live path): views, no copies
+        if len(frames) == 1 and frames[0].batch is not None:  # the live path: the batch it was
+            return frames[0].batch
+        if len(frames) == 1:  # one frame: views, no copies
             def rows(read):
                 return np.asarray(read(frames[0]))[None]
         else:
@@ -349,9 +357,22 @@ class ResidualEvaluator:
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
         self._calibrated = {family: bool(np.isfinite(r).any()) for family, r in self._ranges.items()}
+        #: beyond these the WARN names a wheel: the ranges widened by their margin
+        self._warn_ranges = {family: (1.0 + settings.calibration_range_margin) * r
+                             for family, r in self._ranges.items()}
         self._beyond = {family: np.maximum(self._coefficients[family],
                                            bound_weights(PRIOR_SETTINGS, family))
                         for family in BOUND_TERMS}
+        kinematics = model.kinematics
+        #: wheel speeds -> their part no rigid base motion explains (``Kinematics.slip_residual``
+        #: as one matrix, (n, n); zero for a base of three wheels)
+        self.slip_matrix = np.eye(self.n) - kinematics.jacobian @ kinematics.forward_matrix
+        #: the wheels slip beyond calibration where the speed no rigid motion explains exceeds
+        #: what calibration measured (widened by its margin) and three times the speed
+        #: reading's noise on it [rad/s] (inf: never)
+        self.slip_limit = ((1.0 + settings.calibration_range_margin) * settings.calibrated_slip
+                           + FROZEN_NOISE_SIGMAS * settings.speed_sigma)
+        self._slip_stamp = NEVER  # [s] of the last row in which the wheels slipped so
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
         self._silent_since = None  # (n,) stamp from which each wheel's silence counts [s]
         self._answering = np.ones(self.n, dtype=bool)  # each wheel read in the last sample
@@ -380,6 +401,25 @@ class ResidualEvaluator:
         self._silent_since = np.full(self.n, sample.stamp)
         self._answering = np.ones(self.n, dtype=bool)
         self._disturbance = np.zeros(self.n)
+        self._slip_stamp = NEVER
+
+    def slipping(self, velocity: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+        """Rows (N,) of wheel speeds ``velocity`` (N, n) [rad/s] at ``stamps`` (N,) [s] judged
+        as slipping: the speed no rigid base motion explains (:attr:`slip_matrix`, its largest
+        wheel) beyond :attr:`slip_limit`, or less than ``breakaway_time`` after such a
+        row (the base catching up with its wheels). Continues (and leaves) the state.
+
+        Why: the model is a rolling contact law. When the wheels' speeds fit no motion of the
+        base, some contacts slip, and the torque they pass is the traction's, not what the
+        base's inertia asks through the rolling constraint: a gentle calibration never saw it,
+        an aggressive drive on a slippery floor does. Only a base of four wheels or more can
+        show it (three always fit a motion)."""
+        if not np.isfinite(self.slip_limit):
+            return np.zeros(len(stamps), dtype=bool)
+        slip = np.abs(velocity @ self.slip_matrix.T).max(axis=1) > self.slip_limit
+        last = last_true_value(slip, stamps, self._slip_stamp)
+        self._slip_stamp = float(last[-1])
+        return stamps - last < self.settings.breakaway_time
 
     # ------------------------------------------------------------------ missing readings
     def silence(self, stamps: np.ndarray, answered: np.ndarray) -> np.ndarray:
@@ -394,7 +434,7 @@ class ResidualEvaluator:
         answered = np.asarray(answered, dtype=bool)
         if self._silent_since is None:  # silence counts from the first sample seen
             self._silent_since = np.full(self.n, stamps[0])
-        before = np.concatenate([self._answering[None], answered[:-1]])
+        before = shifted(self._answering, answered)
         since = last_true_value(answered | before, stamps, self._silent_since)
         self._silent_since, self._answering = since[-1], answered[-1]
         return stamps[:, None] - since
@@ -446,9 +486,8 @@ class ResidualEvaluator:
         calibration covered in any family by more than ``calibration_range_margin`` of it (the
         WARN: the bounds widen from the range on)."""
         beyond = None
-        margin = 1.0 + self.settings.calibration_range_margin
         for family, values in features.items():
-            out = np.any(values > margin * self._ranges[family], axis=-1)
+            out = (values > self._warn_ranges[family]).any(axis=-1)
             beyond = out if beyond is None else beyond | out
         return beyond
 
@@ -562,15 +601,15 @@ class ResidualEvaluator:
         if self._last is None:  # the first row restarts (the observer's first sample)
             self.restart(joints.sample(0))
         last_stamp, last_position, last_velocity, last_torque = self._last
-        prev_stamp = np.concatenate([[last_stamp], stamp[:-1]])
-        prev_position, prev_velocity = (np.concatenate([last[None], now[:-1]]) for last, now in
+        prev_stamp = shifted(last_stamp, stamp)
+        prev_position, prev_velocity = (shifted(last, now) for last, now in
                                         ((last_position, position), (last_velocity, velocity)))
         dt = np.where(restart, 1.0, stamp - prev_stamp)  # rows that restart need any valid step
         step = dt[:, None]
         torque = signed_torque(torque, p.explained, self.signed_effort)
         if not self.signed_effort and restart.any():  # as restart() signs it
             torque[restart] = signed_torque(torque[restart], velocity[restart], False)
-        prev_torque = np.concatenate([last_torque[None], torque[:-1]])
+        prev_torque = shifted(last_torque, torque)
         load = p.load_factor[:, None]
         torque_r, torque_f, torque_a = self._torque_terms(
             torque, prev_torque, velocity, prev_velocity, p.explained, p.friction, p.unseen_friction,
@@ -613,10 +652,16 @@ class ResidualEvaluator:
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
         torque_u = self.bound('torque', torque_f)
+        torque_bound = torque_u + torque_a
+        slipping = self.slipping(velocity, stamp)
+        if slipping.any():  # beyond calibration: the bound wider, every wheel named in the WARN
+            torque_bound = np.where(slipping[:, None], self.settings.slip_bound_factor * torque_bound,
+                                    torque_bound)
+            outside = np.where(slipping, wheel_mask(np.zeros(n, dtype=bool)), outside)
         batch = ResidualBatch(
             stamp=stamp,
             values=dict(zip(FAMILIES, (torque_r, velocity - p.from_currents, command_r, encoder_r))),
-            bounds=dict(zip(FAMILIES, (torque_u + torque_a, self.bound('observer', observer_f),
+            bounds=dict(zip(FAMILIES, (torque_bound, self.bound('observer', observer_f),
                                        command_u, self.bound('encoder', encoder_f)))),
             velocity=velocity, torque=torque, velocity_mode=p.velocity_mode, command=p.commanded,
             frozen=frozen, effort_frozen=effort_frozen, position_frozen=position_frozen,

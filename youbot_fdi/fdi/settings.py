@@ -80,6 +80,14 @@ class FdiSettings:
     #: the largest wheel torque calibration measured [N·m] (inf: none): beyond it the firmware's
     #: current limit may act where calibration never saw it, so the command path does not predict
     calibrated_effort: float = unbounded(INF)
+    #: the largest wheel speed no rigid base motion explains that calibration measured, the
+    #: wheels' slip [rad/s] (identify records it; inf: none, or a base of three wheels, whose
+    #: speeds always fit a motion): beyond it the contacts do not roll as the model assumes
+    calibrated_slip: float = unbounded(INF)
+    #: while the wheels slip beyond calibrated_slip, and for breakaway_time after, the torque
+    #: bound is this many times wider: the rolling contact law it was learned under does not
+    #: hold, only evidence clear against it counts [-]
+    slip_bound_factor: float = 2.0
     # the platform-wide load condition (floor covering, payload, slope): common-mode rejection
     load_time_constant: float = 0.5  # smoothing of the per-wheel load estimates [s]
     load_allowance: float = 0.5  # share of the load's change to the friction torque the bound allows [-]
