@@ -633,7 +633,8 @@ class ModelObserver:
         restart = ~((dt > 0.0) & (dt <= s.data_timeout))
         if first:
             restart[0] = True
-        self._count_restarts(dt[1:] if first else dt)
+        if restart.any():  # nothing to count otherwise (the usual row)
+            self._count_restarts(dt[1:] if first else dt)
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]

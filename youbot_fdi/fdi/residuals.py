@@ -521,11 +521,17 @@ class ResidualEvaluator:
         velocity_f = columns(1.0, np.abs(speed), np.maximum(np.abs(target - speed), np.abs(target - before)),
                              np.abs(speed - before) / step)
         effort_f = columns(1.0, np.abs(target))
-        effort_u = (self.bound('effort', effort_f)
-                    + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
-        velocity_u = (self.bound('command', velocity_f)
-                      + np.maximum(np.abs(unseen), np.abs(disturbance)) * self.loop_compliance)
-        bound = np.where(settling, 1.0, np.where(velocity_mode, velocity_u, effort_u))
+        speeds, efforts = bool(np.any(velocity_mode)), not np.all(velocity_mode)
+        if efforts:
+            effort_u = (self.bound('effort', effort_f)
+                        + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
+        if speeds:
+            velocity_u = (self.bound('command', velocity_f)
+                          + np.maximum(np.abs(unseen), np.abs(disturbance)) * self.loop_compliance)
+        # one mode (always live): only its bound is worked out
+        mode_u = (np.where(velocity_mode, velocity_u, effort_u) if speeds and efforts
+                  else velocity_u if speeds else effort_u)
+        bound = np.where(settling, 1.0, mode_u)
         return residual, bound, velocity_f, effort_f
 
     def _loop_disturbance(self, torque_residual, step, restart):
