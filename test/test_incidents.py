@@ -155,6 +155,27 @@ def test_settings_are_checked():
     assert IncidentSettings(incident_dir='').folder().parts[-2:] == ('youbot_fdi', 'incidents')
 
 
+def test_a_damaged_sidecar_is_listed_as_such_and_hides_no_other_incident(tmp_path, capsys):
+    """Bad input gets a diagnostic, not a crash: an incident whose incident.yaml was damaged is
+    listed with why it cannot be read; the others are listed as usual."""
+    from youbot_fdi.cli.main import main
+    settings = IncidentSettings(incident_dir=str(tmp_path), incident_before=0.2, incident_after=0.2)
+    recorder = IncidentRecorder(settings, RunContext(), log=lambda _: None)
+    feed(recorder, 0.0, 3.0, open_at=[0.5, 1.5, 2.5])
+    recorder.close()
+    first, second, third = list_incidents(tmp_path)
+    (second.path / 'incident.yaml').write_text('event: [unclosed\n')
+    (third.path / 'incident.yaml').write_text('just: text\n')
+    listed = list_incidents(tmp_path)
+    assert [i.path for i in listed] == [first.path, second.path, third.path]
+    assert listed[0].problem == '' and listed[0].complete
+    assert 'cannot read the incident sidecar' in listed[1].problem and not listed[1].complete
+    assert 'no event' in listed[2].problem
+    assert main(['incidents', str(tmp_path), '--no-pages']) == 0
+    out = capsys.readouterr().out
+    assert '3 incidents' in out and out.count('unreadable:') == 2 and 'complete' in out
+
+
 KILLED = textwrap.dedent('''
     import os, signal, sys
     sys.path.insert(0, {test_dir!r})

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import datetime
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
 import queue
@@ -454,6 +455,9 @@ class IncidentSummary:
     size_bytes: int
     complete: bool
     stamp: float  # the alarm event's header stamp [s]
+    #: why the sidecar could not be read ('' when it could): the folder is listed with it, the
+    #: others as usual (one damaged incident does not hide the rest)
+    problem: str = ''
 
 
 def read_sidecar(path) -> dict:
@@ -499,7 +503,12 @@ def list_incidents(root) -> list[IncidentSummary]:
         (p.parent for p in root.rglob(SIDECAR)), key=lambda p: p.name)
     found = []
     for folder in folders:
-        data = read_sidecar(folder)
+        try:
+            data = read_sidecar(folder)
+        except ConfigError as err:
+            found.append(IncidentSummary(folder, '?', '?', '?', '', folder_bytes(folder), False,
+                                         math.nan, problem=str(err)))
+            continue
         event = data['event']
         moment = datetime.datetime.fromtimestamp(int(data.get('alarm_time_ns', 0)) / NANOSECONDS,
                                                  tz=datetime.UTC)

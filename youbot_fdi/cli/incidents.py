@@ -54,6 +54,10 @@ def run(args):
     print(f'  {"time (UTC)":<29} {"wheel":<16} {"fault":<15} {"size":>8}  state     '
           + ('' if args.no_pages else 'replayed   page'))
     for incident in incidents:
+        if incident.problem:  # a damaged sidecar: said here, the others listed as usual
+            print(f'  {incident.path.name:<29} {"?":<16} {"?":<15} '
+                  f'{incident.size_bytes / BYTES_PER_MEGABYTE:6.2f}MB  unreadable: {incident.problem}')
+            continue
         state = 'complete' if incident.complete else 'cut'
         replayed = ''
         if not args.no_pages:
