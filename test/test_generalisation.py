@@ -527,9 +527,11 @@ def _batch_of(frame):
     from youbot_fdi.fdi.residuals import ResidualBatch, ROW_ARRAYS
     rows = {name: np.asarray([getattr(frame, name) if name != 'velocity_mode'
                               else frame.velocity_mode])
-            for name in ROW_ARRAYS if name not in ('command_speed', 'torque_scale')}
+            for name in ROW_ARRAYS if name not in ('command_speed', 'torque_scale', 'torque_confirmed')}
     rows['torque_scale'] = (frame.bounds['torque'] if frame.torque_scale is None
                             else frame.torque_scale)[None]
+    rows['torque_confirmed'] = (np.ones_like(frame.velocity) if frame.torque_confirmed is None
+                                else frame.torque_confirmed)[None]
     return ResidualBatch(values={f: v[None] for f, v in frame.values.items()},
                          bounds={f: b[None] for f, b in frame.bounds.items()},
                          command_speed=frame.velocity[None], **rows)

@@ -360,3 +360,35 @@ def test_wheels_whose_speeds_fit_no_motion_slip_for_as_long_and_the_breakaway_af
     three = replace(FdiSettings(), calibrated_slip=0.0, speed_sigma=1e-6)
     wild = np.random.default_rng(3).normal(0.0, 20.0, (50, 3))  # any speeds fit a motion
     assert not ResidualEvaluator(robotino, three).slipping(wild, stamps[:1] + np.arange(50)).any()
+
+
+def test_the_parity_relations_confirm_a_wheel_alone_and_nothing_the_base_shares(model):
+    """The youBot's one parity relation weighs every wheel by 1/2 (B = (+-1/2, ...)): a residual
+    d on one wheel alone is confirmed in full; a force on the base (its range: a sideways drag,
+    pattern (-1, 1, 1, -1)) not at all; a wheel's d beside that drag c by d / |d - c| (at most
+    1); a residual pointing against what the relation says, 0. Slipping rows, missing residuals
+    and a base of three wheels: 1 (nothing to say)."""
+    evaluator = ResidualEvaluator(model, FdiSettings())
+    basis = evaluator.parity_basis
+    assert basis.shape == (4, 1) and np.allclose(np.abs(basis), 0.5)
+    sideways = model.kinematics.jacobian[:, 1] / model.kinematics.jacobian[0, 0]  # (-1, 1, 1, -1)
+    assert np.allclose(sideways, [-1.0, 1.0, 1.0, -1.0])
+    d, c = 0.3, 0.1
+    rows = np.array([[d, 0.0, 0.0, 0.0],
+                     0.2 * sideways,
+                     [d, 0.0, 0.0, 0.0] + c * sideways,  # wheel fl: d - c, the others +-c
+                     [d, 0.0, 0.0, 0.0],
+                     [np.nan, 0.1, 0.1, 0.1]])
+    slipping = np.array([False, False, False, True, False])
+    share = evaluator.parity_confirmed(rows, slipping)
+    assert share[0].tolist() == [1.0, 1.0, 1.0, 1.0]  # the others have no residual to judge
+    assert np.allclose(share[1], 0.0)
+    assert share[2, 0] == pytest.approx(min(1.0, d / abs(d - c)))
+    # B = +-(-1, -1, 1, 1)/2: the relation reads -d/2 (+-); fr alone would have to be +d (its
+    # +c agrees: confirmed), bl alone -d (its +c points the other way: 0)
+    assert np.allclose(np.sign(basis[:, 0]) * np.sign(basis[0, 0]), [1.0, 1.0, -1.0, -1.0])
+    assert share[2, 1] == 1.0 and share[2, 2] == 0.0
+    assert share[3].tolist() == [1.0] * 4 and share[4].tolist() == [1.0] * 4
+    three = ResidualEvaluator(load_model('robotino'), FdiSettings())
+    assert three.parity_basis.shape == (3, 0)
+    assert three.parity_confirmed(np.array([[0.5, -0.2, 0.1]]), np.zeros(1, dtype=bool)).tolist() == [[1.0] * 3]

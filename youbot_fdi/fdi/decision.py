@@ -702,7 +702,9 @@ class DecisionMaker:
         if not rows:
             return []
         z = batch.scores()
-        alarm = self._alarms(z, self._excited(batch.velocity, batch.torque), batch.stamp,
+        judged = z.copy()  # a wheel's torque evidence: as far as the parity relations confirm it
+        judged[:, TORQUE] *= batch.torque_confirmed
+        alarm = self._alarms(judged, self._excited(batch.velocity, batch.torque), batch.stamp,
                              batch.values['torque'], batch.bounds['torque'], batch.torque_scale,
                              self._breaking_away(batch.velocity, batch.stamp),
                              self.operating_point_changes(batch.velocity))

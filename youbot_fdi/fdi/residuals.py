@@ -60,7 +60,7 @@ FAMILIES = ('torque', 'observer', 'command', 'encoder')
 SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
            ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'),
            ('position_frozen', 'position_frozen'), ('silent', 'silent'),
-           ('shift_scale', 'torque_scale'))
+           ('shift_scale', 'torque_scale'), ('confirmed', 'torque_confirmed'))
 #: Each bound is linear in its operating-point features: u = sum_j settings[name_j] * feature_j.
 #: Per bound, the settings that weigh its features, in feature order (``identify`` fits them by
 #: quantile regression on a nominal recording). ``effort`` is the command family in current mode.
@@ -81,6 +81,9 @@ FROZEN_MIN_TICKS = 2.0
 #: a reading inside its own noise does not show that the wheel turns (three sigma: a standing
 #: wheel's noisy reading passes it in about one sample of 700, and three in a row practically never).
 FROZEN_NOISE_SIGMAS = 3.0
+#: Singular values (of the kinematic matrix) and parity weights below this share of the largest
+#: are zero: the rank and the wheels the parity relations see [-]
+PARITY_RANK_TOLERANCE = 1e-9
 
 
 def bound_weights(settings: FdiSettings, family: str) -> np.ndarray:
@@ -148,6 +151,9 @@ class ResidualFrame:
     #: speeds calibration did not see) [N·m]: the scale of the torque residual's shift, in which
     #: a steady bias cancels (None: the bound)
     torque_scale: np.ndarray = None
+    #: the share (0..1) of each wheel's torque residual a fault of that wheel alone would also
+    #: show in the parity relations (:meth:`ResidualEvaluator.parity_confirmed`; None: all)
+    torque_confirmed: np.ndarray = None
     #: the batch of one this frame is (:meth:`ResidualBatch.frame`), which the decision takes as
     #: it is instead of building it again (the live path); None for a frame made otherwise
     batch: ResidualBatch | None = field(default=None, repr=False, compare=False)
@@ -177,9 +183,11 @@ class ResidualFrame:
         values, bounds = self.flat()
         labels = self.names(wheel_names)
         signals = []
+        unset = {'torque_scale': self.bounds['torque'], 'torque_confirmed': np.ones(len(suffixes))}
         for prefix, array in SIGNALS:
             labels += [f'{prefix}_{s}' for s in suffixes]
-            signals.append(np.asarray(getattr(self, array), dtype=float))
+            value = getattr(self, array)
+            signals.append(np.asarray(unset[array] if value is None else value, dtype=float))
         labels += list(SCALAR_SIGNALS)
         signals.append(np.array([float(self.velocity_mode), self.load_factor,
                                  self.outside_calibration]))
@@ -216,6 +224,7 @@ class ResidualFrame:
                    frozen=signals['frozen'].astype(int), effort_frozen=signals['effort_frozen'].astype(int),
                    position_frozen=signals['position_frozen'].astype(int),
                    silent=signals['silent'], torque_scale=signals['torque_scale'],
+                   torque_confirmed=signals['torque_confirmed'],
                    load_factor=float(values[index['load_factor']]),
                    outside_calibration=float(values[index['outside_calibration']]))
 
@@ -226,7 +235,7 @@ SCALAR_SIGNALS = ('command_mode', 'load_factor', 'outside_calibration')
 #: The per-row arrays of a ResidualBatch besides ``values`` and ``bounds``.
 ROW_ARRAYS = ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen', 'effort_frozen',
               'position_frozen', 'silent', 'load_factor', 'command_speed', 'outside_calibration',
-              'torque_scale')
+              'torque_scale', 'torque_confirmed')
 
 
 @dataclass(frozen=True)
@@ -252,6 +261,7 @@ class ResidualBatch:
     command_speed: np.ndarray
     outside_calibration: np.ndarray  # (N,) wheels outside the learned range (bit mask)
     torque_scale: np.ndarray  # (N, n) as in ResidualFrame
+    torque_confirmed: np.ndarray  # (N, n) as in ResidualFrame
     features: dict = None
 
     def __len__(self):
@@ -265,7 +275,7 @@ class ResidualBatch:
             torque=self.torque[k], velocity_mode=bool(self.velocity_mode[k]),
             command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k],
             position_frozen=self.position_frozen[k], silent=self.silent[k],
-            torque_scale=self.torque_scale[k],
+            torque_scale=self.torque_scale[k], torque_confirmed=self.torque_confirmed[k],
             load_factor=float(self.load_factor[k]),
             outside_calibration=float(self.outside_calibration[k]),
             batch=self if len(self.stamp) == 1 else None)
@@ -306,7 +316,9 @@ class ResidualBatch:
                    position_frozen=rows(lambda f: f.position_frozen), silent=rows(lambda f: f.silent),
                    load_factor=rows(lambda f: f.load_factor), command_speed=np.full((len(frames), n), np.nan),
                    outside_calibration=rows(lambda f: f.outside_calibration),
-                   torque_scale=rows(lambda f: f.bounds['torque'] if f.torque_scale is None else f.torque_scale))
+                   torque_scale=rows(lambda f: f.bounds['torque'] if f.torque_scale is None else f.torque_scale),
+                   torque_confirmed=rows(lambda f: np.ones(n) if f.torque_confirmed is None
+                                         else f.torque_confirmed))
 
     @classmethod
     def concatenate(cls, batches: Iterable[ResidualBatch]) -> ResidualBatch:
@@ -367,6 +379,14 @@ class ResidualEvaluator:
         #: wheel speeds -> their part no rigid base motion explains (``Kinematics.slip_residual``
         #: as one matrix, (n, n); zero for a base of three wheels)
         self.slip_matrix = np.eye(self.n) - kinematics.jacobian @ kinematics.forward_matrix
+        #: the parity relations of the wheel torques: an orthonormal basis (n, n - 3) of what no
+        #: force or torque on the base makes (the null space of the kinematic matrix's
+        #: transpose; none for a base of three wheels), and each wheel's share of it (n,)
+        jacobian = kinematics.jacobian
+        _, singular, rows = np.linalg.svd(jacobian.T)
+        rank = int(np.sum(singular > PARITY_RANK_TOLERANCE * singular.max()))
+        self.parity_basis = rows[rank:].T
+        self._parity_weight = np.sum(self.parity_basis ** 2, axis=1)
         #: the wheels slip beyond calibration where the speed no rigid motion explains exceeds
         #: what calibration measured (widened by its margin) and three times the speed
         #: reading's noise on it [rad/s] (inf: never)
@@ -421,6 +441,37 @@ class ResidualEvaluator:
         self._slip_stamp = float(last[-1])
         return stamps - last < self.settings.breakaway_time
 
+    def parity_confirmed(self, torque_residual: np.ndarray, slipping: np.ndarray) -> np.ndarray:
+        """The share (0..1) (N, n) of each wheel's torque residual ``torque_residual`` (N, n)
+        [N·m] that the parity relations confirm as that wheel's alone: the size a fault of wheel w
+        alone would have to give them what they show, ``(B_w . B^T r) / |B_w|^2`` (B the
+        :attr:`parity_basis`), over the size of its residual, at most 1, and 0 where it points
+        the other way. 1 where nothing can be said: no parity relations (three wheels), a wheel
+        outside them, a residual missing or zero, and the rows ``slipping`` (N,) (the rolling
+        law, whose forces the relations rest on, does not hold there).
+
+        Why: a fault of one wheel shows on its own torque residual and, in proportion, in the
+        parity relations; what every wheel shares as a force or torque on the base (a payload,
+        a slope, a floor's drag sideways, the model's mass) is in the range of the kinematics
+        and leaves them untouched. So a wheel's torque evidence counts only as far as the
+        parity relations say it is that wheel's (docs/fdi.md, "Decision")."""
+        share = np.ones_like(torque_residual)
+        if not self.parity_basis.shape[1]:
+            return share
+        observable = self._parity_weight > PARITY_RANK_TOLERANCE
+        known = np.isfinite(torque_residual).all(axis=1) & ~slipping
+        if not known.any():
+            return share
+        residual = torque_residual[known]
+        parity = residual @ self.parity_basis  # (M, n - 3)
+        alone = (parity @ self.parity_basis.T) / np.where(observable, self._parity_weight, 1.0)
+        size = np.abs(residual)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            confirmed = np.where(np.sign(alone) == np.sign(residual),
+                                 np.minimum(1.0, np.abs(alone) / size), 0.0)
+        share[known] = np.where(observable & (size > 0.0), confirmed, 1.0)
+        return share
+
     # ------------------------------------------------------------------ missing readings
     def silence(self, stamps: np.ndarray, answered: np.ndarray) -> np.ndarray:
         """How long [s] (N, n) each wheel has been silent at each of ``stamps`` (N,), from which
@@ -461,7 +512,8 @@ class ResidualEvaluator:
             velocity_mode=np.ones(rows, dtype=bool), command=nan, frozen=frozen,
             effort_frozen=effort_frozen, position_frozen=position_frozen, silent=silent,
             load_factor=np.full(rows, np.nan), command_speed=nan,
-            outside_calibration=np.zeros(rows), torque_scale=np.ones((rows, n)), features=features)
+            outside_calibration=np.zeros(rows), torque_scale=np.ones((rows, n)),
+            torque_confirmed=np.ones((rows, n)), features=features)
 
     def missing(self, sample: JointSample) -> ResidualFrame:
         """:meth:`missing_batch` for one sample (:class:`~youbot_fdi.samples.JointSample`): a
@@ -600,6 +652,7 @@ class ResidualEvaluator:
                 velocity_mode=p.velocity_mode, command=empty, frozen=counts, effort_frozen=counts,
                 position_frozen=counts, silent=empty, load_factor=np.empty(0),
                 command_speed=empty, outside_calibration=np.empty(0), torque_scale=empty,
+                torque_confirmed=empty,
                 features={})
         stamp = joints.stamp
         position, velocity, torque = (self.signs * a for a in
@@ -672,7 +725,8 @@ class ResidualEvaluator:
             velocity=velocity, torque=torque, velocity_mode=p.velocity_mode, command=p.commanded,
             frozen=frozen, effort_frozen=effort_frozen, position_frozen=position_frozen,
             silent=np.zeros((rows, n)), load_factor=p.load_factor, command_speed=p.from_commands,
-            outside_calibration=outside, torque_scale=torque_u, features=features)
+            outside_calibration=outside, torque_scale=torque_u,
+            torque_confirmed=self.parity_confirmed(torque_r, slipping), features=features)
         return batch.select(~restart) if restart.any() else batch
 
 
