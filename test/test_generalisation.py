@@ -528,10 +528,8 @@ def _batch_of(frame):
     rows = {name: np.asarray([getattr(frame, name) if name != 'velocity_mode'
                               else frame.velocity_mode])
             for name in ROW_ARRAYS if name not in ('command_speed', 'torque_scale', 'torque_confirmed')}
-    rows['torque_scale'] = (frame.bounds['torque'] if frame.torque_scale is None
-                            else frame.torque_scale)[None]
-    rows['torque_confirmed'] = (np.ones_like(frame.velocity) if frame.torque_confirmed is None
-                                else frame.torque_confirmed)[None]
+    rows['torque_scale'] = frame.signal('torque_scale')[None]
+    rows['torque_confirmed'] = frame.signal('torque_confirmed')[None]
     return ResidualBatch(values={f: v[None] for f, v in frame.values.items()},
                          bounds={f: b[None] for f, b in frame.bounds.items()},
                          command_speed=frame.velocity[None], **rows)

@@ -369,7 +369,7 @@ def test_the_parity_relations_confirm_a_wheel_alone_and_nothing_the_base_shares(
     1); a residual pointing against what the relation says, 0. Slipping rows, missing residuals
     and a base of three wheels: 1 (nothing to say)."""
     evaluator = ResidualEvaluator(model, FdiSettings())
-    basis = evaluator.parity_basis
+    basis = model.kinematics.parity_basis
     assert basis.shape == (4, 1) and np.allclose(np.abs(basis), 0.5)
     sideways = model.kinematics.jacobian[:, 1] / model.kinematics.jacobian[0, 0]  # (-1, 1, 1, -1)
     assert np.allclose(sideways, [-1.0, 1.0, 1.0, -1.0])
@@ -390,5 +390,5 @@ def test_the_parity_relations_confirm_a_wheel_alone_and_nothing_the_base_shares(
     assert share[2, 1] == 1.0 and share[2, 2] == 0.0
     assert share[3].tolist() == [1.0] * 4 and share[4].tolist() == [1.0] * 4
     three = ResidualEvaluator(load_model('robotino'), FdiSettings())
-    assert three.parity_basis.shape == (3, 0)
+    assert three.kinematics.parity_basis.shape == (3, 0)
     assert three.parity_confirmed(np.array([[0.5, -0.2, 0.1]]), np.zeros(1, dtype=bool)).tolist() == [[1.0] * 3]

@@ -623,12 +623,12 @@ def calibrated_speed_range(arrays, settings):
 
 def calibrated_slip(model, arrays):
     """The largest wheel speed no rigid base motion explains [rad/s] over the recording's
-    complete rows (``Kinematics.slip_residual``; 0 for a base of three wheels), or inf without
+    complete rows (``Kinematics.slip_speed``; 0 for a base of three wheels), or inf without
     enough of them."""
     complete = np.isfinite(arrays.velocity).all(axis=1)
     if complete.sum() < MIN_SAMPLES:
         return math.inf
-    return float(np.abs(model.kinematics.slip_residual(arrays.velocity[complete])).max())
+    return float(model.kinematics.slip_speed(arrays.velocity[complete]).max())
 
 
 def speed_noise(arrays):

@@ -53,7 +53,6 @@ runs (ridge least squares, numpy only: no training dependency).
 from dataclasses import dataclass
 from functools import cache, cached_property
 
-
 import numpy as np
 
 from youbot_fdi.errors import ConfigError

@@ -46,6 +46,7 @@ from youbot_fdi.fdi.learned import mask_wheels, wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import NEVER, last_true_value, run_lengths, scalar_recursion, shifted
+from youbot_fdi.model.kinematics import RANK_TOLERANCE
 from youbot_fdi.samples import JointBatch
 from youbot_fdi.naming import wheel_suffix
 
@@ -81,9 +82,6 @@ FROZEN_MIN_TICKS = 2.0
 #: a reading inside its own noise does not show that the wheel turns (three sigma: a standing
 #: wheel's noisy reading passes it in about one sample of 700, and three in a row practically never).
 FROZEN_NOISE_SIGMAS = 3.0
-#: Singular values (of the kinematic matrix) and parity weights below this share of the largest
-#: are zero: the rank and the wheels the parity relations see [-]
-PARITY_RANK_TOLERANCE = 1e-9
 
 
 def bound_weights(settings: FdiSettings, family: str) -> np.ndarray:
@@ -158,6 +156,14 @@ class ResidualFrame:
     #: it is instead of building it again (the live path); None for a frame made otherwise
     batch: ResidualBatch | None = field(default=None, repr=False, compare=False)
 
+    def signal(self, name: str) -> np.ndarray:
+        """The per-wheel signal ``name`` (a field of :data:`SIGNALS`), an unset one as it stands
+        for: the shift scale the torque bound, the confirmed share 1 (all)."""
+        value = getattr(self, name)
+        if value is not None:
+            return value
+        return self.bounds['torque'] if name == 'torque_scale' else np.ones(len(self.velocity))
+
     def names(self, wheel_names: Sequence[str]) -> list[str]:
         """Residual names in family-major order, e.g. ``torque_fl``."""
         return [f'{family}_{wheel_suffix(w)}' for family in FAMILIES for w in wheel_names]
@@ -183,11 +189,9 @@ class ResidualFrame:
         values, bounds = self.flat()
         labels = self.names(wheel_names)
         signals = []
-        unset = {'torque_scale': self.bounds['torque'], 'torque_confirmed': np.ones(len(suffixes))}
         for prefix, array in SIGNALS:
             labels += [f'{prefix}_{s}' for s in suffixes]
-            value = getattr(self, array)
-            signals.append(np.asarray(unset[array] if value is None else value, dtype=float))
+            signals.append(np.asarray(self.signal(array), dtype=float))
         labels += list(SCALAR_SIGNALS)
         signals.append(np.array([float(self.velocity_mode), self.load_factor,
                                  self.outside_calibration]))
@@ -316,9 +320,8 @@ class ResidualBatch:
                    position_frozen=rows(lambda f: f.position_frozen), silent=rows(lambda f: f.silent),
                    load_factor=rows(lambda f: f.load_factor), command_speed=np.full((len(frames), n), np.nan),
                    outside_calibration=rows(lambda f: f.outside_calibration),
-                   torque_scale=rows(lambda f: f.bounds['torque'] if f.torque_scale is None else f.torque_scale),
-                   torque_confirmed=rows(lambda f: np.ones(n) if f.torque_confirmed is None
-                                         else f.torque_confirmed))
+                   torque_scale=rows(lambda f: f.signal('torque_scale')),
+                   torque_confirmed=rows(lambda f: f.signal('torque_confirmed')))
 
     @classmethod
     def concatenate(cls, batches: Iterable[ResidualBatch]) -> ResidualBatch:
@@ -375,18 +378,9 @@ class ResidualEvaluator:
         self._beyond = {family: np.maximum(self._coefficients[family],
                                            bound_weights(PRIOR_SETTINGS, family))
                         for family in BOUND_TERMS}
-        kinematics = model.kinematics
-        #: wheel speeds -> their part no rigid base motion explains (``Kinematics.slip_residual``
-        #: as one matrix, (n, n); zero for a base of three wheels)
-        self.slip_matrix = np.eye(self.n) - kinematics.jacobian @ kinematics.forward_matrix
-        #: the parity relations of the wheel torques: an orthonormal basis (n, n - 3) of what no
-        #: force or torque on the base makes (the null space of the kinematic matrix's
-        #: transpose; none for a base of three wheels), and each wheel's share of it (n,)
-        jacobian = kinematics.jacobian
-        _, singular, rows = np.linalg.svd(jacobian.T)
-        rank = int(np.sum(singular > PARITY_RANK_TOLERANCE * singular.max()))
-        self.parity_basis = rows[rank:].T
-        self._parity_weight = np.sum(self.parity_basis ** 2, axis=1)
+        self.kinematics = model.kinematics
+        #: each wheel's share (n,) of the parity relations (``Kinematics.parity_basis``)
+        self._parity_weight = np.sum(self.kinematics.parity_basis ** 2, axis=1)
         #: the wheels slip beyond calibration where the speed no rigid motion explains exceeds
         #: what calibration measured (widened by its margin) and three times the speed
         #: reading's noise on it [rad/s] (inf: never)
@@ -425,8 +419,7 @@ class ResidualEvaluator:
 
     def slipping(self, velocity: np.ndarray, stamps: np.ndarray) -> np.ndarray:
         """Rows (N,) of wheel speeds ``velocity`` (N, n) [rad/s] at ``stamps`` (N,) [s] judged
-        as slipping: the speed no rigid base motion explains (:attr:`slip_matrix`, its largest
-        wheel) beyond :attr:`slip_limit`, or less than ``breakaway_time`` after such a
+        as slipping: the speed no rigid base motion explains (``Kinematics.slip_speed``) beyond :attr:`slip_limit`, or less than ``breakaway_time`` after such a
         row (the base catching up with its wheels). Continues (and leaves) the state.
 
         Why: the model is a rolling contact law. When the wheels' speeds fit no motion of the
@@ -436,7 +429,7 @@ class ResidualEvaluator:
         show it (three always fit a motion)."""
         if not np.isfinite(self.slip_limit):
             return np.zeros(len(stamps), dtype=bool)
-        slip = np.abs(velocity @ self.slip_matrix.T).max(axis=1) > self.slip_limit
+        slip = self.kinematics.slip_speed(velocity) > self.slip_limit
         last = last_true_value(slip, stamps, self._slip_stamp)
         self._slip_stamp = float(last[-1])
         return stamps - last < self.settings.breakaway_time
@@ -445,7 +438,7 @@ class ResidualEvaluator:
         """The share (0..1) (N, n) of each wheel's torque residual ``torque_residual`` (N, n)
         [N·m] that the parity relations confirm as that wheel's alone: the size a fault of wheel w
         alone would have to give them what they show, ``(B_w . B^T r) / |B_w|^2`` (B the
-        :attr:`parity_basis`), over the size of its residual, at most 1, and 0 where it points
+        ``Kinematics.parity_basis``), over the size of its residual, at most 1, and 0 where it points
         the other way. 1 where nothing can be said: no parity relations (three wheels), a wheel
         outside them, a residual missing or zero, and the rows ``slipping`` (N,) (the rolling
         law, whose forces the relations rest on, does not hold there).
@@ -456,15 +449,16 @@ class ResidualEvaluator:
         and leaves them untouched. So a wheel's torque evidence counts only as far as the
         parity relations say it is that wheel's (docs/fdi.md, "Decision")."""
         share = np.ones_like(torque_residual)
-        if not self.parity_basis.shape[1]:
+        basis = self.kinematics.parity_basis
+        if not basis.shape[1]:
             return share
-        observable = self._parity_weight > PARITY_RANK_TOLERANCE
+        observable = self._parity_weight > RANK_TOLERANCE
         known = np.isfinite(torque_residual).all(axis=1) & ~slipping
         if not known.any():
             return share
         residual = torque_residual[known]
-        parity = residual @ self.parity_basis  # (M, n - 3)
-        alone = (parity @ self.parity_basis.T) / np.where(observable, self._parity_weight, 1.0)
+        parity = residual @ basis  # (M, n - 3)
+        alone = (parity @ basis.T) / np.where(observable, self._parity_weight, 1.0)
         size = np.abs(residual)
         with np.errstate(invalid='ignore', divide='ignore'):
             confirmed = np.where(np.sign(alone) == np.sign(residual),

@@ -100,6 +100,12 @@ class Kinematics:
             raise ModelError(msg)
         self.forward_matrix = np.linalg.pinv(self.jacobian)
         self._slide_matrix = self.roller_jacobian @ self.forward_matrix  # wheel speeds -> slides
+        #: wheel speeds -> their part no rigid base motion explains (n, n) (zero for three wheels)
+        self.slip_matrix = np.eye(len(rows)) - self.jacobian @ self.forward_matrix
+        #: the parity relations of the wheel torques: an orthonormal basis (n, n - 3) of the wheel
+        #: torques no force or torque on the base makes, the null space of the Jacobian's
+        #: transpose (rank 3, checked above; empty for three wheels)
+        self.parity_basis = np.linalg.svd(self.jacobian.T)[2][3:].T
         self.drive_signs = np.array(platform.drive_signs)
 
     @property
@@ -160,8 +166,12 @@ class Kinematics:
 
         Zero for consistent wheels; for N > 3 wheels a non-zero value means slip or a bad reading.
         """
-        speeds = np.asarray(wheel_speeds, dtype=float)
-        return speeds - self.inverse(self.forward(speeds))
+        return np.asarray(wheel_speeds, dtype=float) @ self.slip_matrix.T
+
+    def slip_speed(self, wheel_speeds):
+        """The largest wheel's :meth:`slip_residual` in size [rad/s], shape as the input without
+        its last axis."""
+        return np.abs(self.slip_residual(wheel_speeds)).max(axis=-1)
 
 
 def integrate_pose(pose, twist, dt):
