@@ -11,7 +11,7 @@ import pytest
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.learned import mask_wheels
 from youbot_fdi.app.config import load_residual_data
-from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, FROZEN_NOISE_SIGMAS,
+from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, SPEED_NOISE_SIGMAS,
                                       PRIOR_SETTINGS, ResidualEvaluator, ResidualFrame, bound_weights)
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
@@ -187,11 +187,11 @@ def test_the_command_path_settles_after_it_took_the_measured_state(model):
 
 def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):
     """The frozen-position test counts a wheel as turning only where its speed less
-    FROZEN_NOISE_SIGMAS x speed_sigma moves the encoder by FROZEN_MIN_TICKS in the interval."""
+    SPEED_NOISE_SIGMAS x speed_sigma moves the encoder by FROZEN_MIN_TICKS in the interval."""
     sigma = 0.05  # [rad/s]
     evaluator = ResidualEvaluator(model, replace(FdiSettings(), speed_sigma=sigma))
     step = 0.002  # 500 Hz
-    needed = FROZEN_MIN_TICKS * evaluator.position_quantum / step + FROZEN_NOISE_SIGMAS * sigma
+    needed = FROZEN_MIN_TICKS * evaluator.position_quantum / step + SPEED_NOISE_SIGMAS * sigma
     speeds = np.array([[0.5 * needed, 0.99 * needed, 1.01 * needed, 3 * needed]])
     moving = evaluator._moving(speeds, np.zeros((1, 4)), np.array([[False]]), step)
     assert moving.tolist() == [[False, False, True, True]]
@@ -392,3 +392,59 @@ def test_the_parity_relations_confirm_a_wheel_alone_and_nothing_the_base_shares(
     three = ResidualEvaluator(load_model('robotino'), FdiSettings())
     assert three.kinematics.parity_basis.shape == (3, 0)
     assert three.parity_confirmed(np.array([[0.5, -0.2, 0.1]]), np.zeros(1, dtype=bool)).tolist() == [[1.0] * 3]
+
+
+def test_the_torque_shift_allows_the_friction_of_a_speed_the_reading_cannot_resolve():
+    """Closed form, F_c a youBot's Coulomb level (0.03 N·m), v_s its step width 0.05 rad/s, the reading
+    good to 3 x speed_sigma = 0.03 rad/s: a wheel read within 0.03 of standing may stand, and its
+    friction may change by 2 F_c; at 0.06 by F_c (tanh(0.09 / 0.05) - tanh(0.03 / 0.05)); at
+    2 rad/s practically not. The shift's scale is the learned bound plus that, times the load
+    factor; a residual's step of 1.5 F_c on a wheel that creeps is then inside the shift test's
+    drift (no alarm), the same step at a resolved speed alarms."""
+    from youbot_fdi.model.profile import PlatformModel
+    base = load_model('youbot')
+    model = PlatformModel(replace(base.profile, dynamics=replace(base.profile.dynamics,
+                                                                 coulomb_friction=(0.03,) * 4)))
+    settings = replace(FdiSettings(), speed_sigma=0.01, breakaway_time=0.0)
+    dynamics = model.dynamics
+    coulomb, width = dynamics.coulomb, dynamics.parameters.coulomb_velocity_scale
+    assert width == 0.05 and coulomb.tolist() == [0.03] * 4
+    speeds = np.array([[0.0, -0.03, 0.06, 2.0]])
+    expected = coulomb * np.array([2.0, 2.0, math.tanh(0.09 / 0.05) - math.tanh(0.03 / 0.05),
+                                   math.tanh(2.03 / 0.05) - math.tanh(1.97 / 0.05)])
+    np.testing.assert_allclose(dynamics.coulomb_span(speeds, 0.03), expected[None], rtol=1e-12)
+    assert dynamics.coulomb_span(np.full(4, 0.06), 0.0).tolist() == [0.0] * 4  # an exact reading
+    evaluator = ResidualEvaluator(model, settings)
+    learned = np.full((1, 4), 0.1)
+    np.testing.assert_allclose(evaluator.shift_scale(learned, speeds, np.array([[1.5]])),
+                               learned + 1.5 * expected[None], rtol=1e-12)
+
+    learned_scale = 0.05  # [N·m]: a step of 1.5 F_c is 0.9 of it, 0.41 of it with 2 F_c more
+
+    def first_shift_alarm(speed):
+        decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
+        n, bound = len(model.wheel_names), np.ones(len(model.wheel_names))
+        velocity = np.array([speed, 2.0, 2.0, 2.0])
+        scale = evaluator.shift_scale(np.full((1, n), learned_scale), velocity[None], 1.0)[0]
+        for k in range(600):
+            values = {f: np.zeros(n) for f in FAMILIES}
+            values['torque'][0] = 0.0 if k < 400 else 1.5 * coulomb[0]  # inside the bound (1)
+            row = ResidualFrame(stamp=10.0 + k / 100.0, values=values,
+                                bounds={f: bound for f in FAMILIES}, velocity=velocity,
+                                torque=np.full(n, 0.5), velocity_mode=True, command=velocity,
+                                frozen=np.zeros(n, dtype=int), effort_frozen=np.zeros(n, dtype=int),
+                                position_frozen=np.zeros(n, dtype=int), silent=np.zeros(n),
+                                torque_scale=scale)
+            if any(e.level == 'ERROR' for e in decision.update(row)):
+                return k
+        return None
+
+    assert 1.5 * coulomb[0] / (learned_scale + 2.0 * coulomb[0]) < settings.shift_drift
+    assert first_shift_alarm(0.01) is None  # never evidence
+    # the shift 0.9 decays as the level follows (a = exp(-dt / shift_time_constant) a sample);
+    # its CUSUM sum_j (0.9 a^j - drift) reaches shift_threshold after J samples
+    keep, total, samples = math.exp(-0.01 / settings.shift_time_constant), 0.0, 0
+    while total < settings.shift_threshold:
+        total += 0.9 * keep ** samples - settings.shift_drift
+        samples += 1
+    assert first_shift_alarm(2.0) == pytest.approx(400 + samples - 1, abs=1)  # as above: +-1 row

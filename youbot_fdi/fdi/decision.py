@@ -57,7 +57,7 @@ from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
 from youbot_fdi.fdi.recursions import (ExponentialAverage, NEVER, bounded_cusum, cusum,
                                        last_true_value, shifted)
-from youbot_fdi.fdi.residuals import FAMILIES, ResidualBatch
+from youbot_fdi.fdi.residuals import FAMILIES, SPEED_NOISE_SIGMAS, ResidualBatch
 from youbot_fdi.naming import wheel_suffix
 
 if TYPE_CHECKING:  # names in annotations only
@@ -83,9 +83,6 @@ SHIFT_CEILING = 2.0
 #: A torque level is a reference once this share of its memory holds samples (``shift_time_constant``
 #: x ln 2 after the start or a gap): the first samples' mean is not yet the wheel's normal.
 SHIFT_KNOWN_LEVEL = 0.5
-#: A speed reading within this many of its noise (``speed_sigma``) of the operating point's mean
-#: is at it (three sigma: a noisy reading leaves it by chance in about one sample of 370).
-OPERATING_NOISE_SIGMAS = 3.0
 OPERATING_BLOCK = 256  # rows searched at once for the next change of operating point
 BASE = None  # the component of faults not tied to one wheel
 BASE_NAME = 'base'  # how the base component is named for people
@@ -241,7 +238,7 @@ class DecisionMaker:
         point is the mean of the speeds read since it started; a row leaves it when some wheel's
         speed differs from that mean by more than ``shift_operating_range`` of the fastest wheel's
         mean speed (or ``stuck_speed``, if more: slower is standing) plus the reading's noise
-        (``OPERATING_NOISE_SIGMAS`` x ``speed_sigma``: a quantised or noisy reading is not a move).
+        (``SPEED_NOISE_SIGMAS`` x ``speed_sigma``: a quantised or noisy reading is not a move).
         The model's bias depends on the operating point (the contact law, the friction split, the
         speed), so a level learned at one says nothing of the residual at another; a fault
         changes the residual at the same one. Leaves the reference after the last row."""
@@ -284,7 +281,7 @@ class DecisionMaker:
         and still be at it (see :meth:`operating_point_changes`), (...)."""
         s = self.settings
         return (np.maximum(s.shift_operating_range * np.max(np.abs(means), axis=-1), s.stuck_speed)
-                + OPERATING_NOISE_SIGMAS * s.speed_sigma)
+                + SPEED_NOISE_SIGMAS * s.speed_sigma)
 
     def sample_weights(self, stamps: np.ndarray) -> np.ndarray:
         """The evidence weight of each row at ``stamps`` (N,) [s]: ``min(1, dt / evidence_interval)``

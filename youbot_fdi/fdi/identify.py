@@ -649,7 +649,8 @@ def held_out_scores(model, batch, settings):
     """Scores |r| / u (N, families, n) of a nominal recording's residuals ``batch`` (from the
     generator run with ``settings``), each half judged with bounds fitted on the other half (the
     part of a bound that is not learned, its allowances, kept); and the held-out torque bounds
-    with and without those allowances (the scale of the torque shift)."""
+    with and without those allowances (the scale of the torque shift,
+    ``ResidualEvaluator.shift_scale``)."""
     rows = len(batch)
     half = rows // 2
     full = ResidualEvaluator(model, settings)
@@ -667,7 +668,8 @@ def held_out_scores(model, batch, settings):
             value = np.where(settling, 0.0, part.values[family])
             scores[judge, k] = np.abs(value) / bound
             if family == 'torque':
-                torque_bound[judge], torque_scale[judge] = bound, now
+                torque_bound[judge] = bound
+                torque_scale[judge] = held.shift_scale(now, part.velocity, part.load_factor[:, None])
     scores[~np.isfinite(scores)] = 0.0
     return scores, torque_bound, torque_scale
 

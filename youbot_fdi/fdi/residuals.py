@@ -78,10 +78,12 @@ BOUND_TERMS = {
 #: A position reading that repeats exactly while the wheel should have turned this many encoder
 #: ticks within the interval is evidence of a frozen sensor [ticks].
 FROZEN_MIN_TICKS = 2.0
-#: ... the speed counted for that less this many of the speed reading's noise (``speed_sigma``):
-#: a reading inside its own noise does not show that the wheel turns (three sigma: a standing
-#: wheel's noisy reading passes it in about one sample of 700, and three in a row practically never).
-FROZEN_NOISE_SIGMAS = 3.0
+#: A speed reading tells a speed to within this many of its noise (``speed_sigma``): a reading
+#: inside its own noise does not show that the wheel turns (for a frozen encoder, the speed less
+#: this much must move it by FROZEN_MIN_TICKS), nor that it left an operating point, nor where in
+#: the Coulomb step it is (three sigma: a noisy reading passes it by chance in about one sample
+#: of 370 either way, 700 one way, and three in a row practically never).
+SPEED_NOISE_SIGMAS = 3.0
 
 
 def bound_weights(settings: FdiSettings, family: str) -> np.ndarray:
@@ -145,9 +147,10 @@ class ResidualFrame:
     load_factor: float = 1.0  # the platform-wide friction/load condition (1: as identified) [-]
     #: wheels outside the learned correction's calibrated range (bit mask, see Prediction)
     outside_calibration: float = 0.0
-    #: the torque bound without its allowances for steady biases (a floor, a load, friction at
-    #: speeds calibration did not see) [N·m]: the scale of the torque residual's shift, in which
-    #: a steady bias cancels (None: the bound)
+    #: the scale of the torque residual's shift [N·m], in which a steady bias cancels: the torque
+    #: bound without its allowances for steady biases (a floor, a load, friction at speeds
+    #: calibration did not see), with the change of Coulomb friction a speed the reading cannot
+    #: resolve allows (ResidualEvaluator.shift_scale; None: the bound)
     torque_scale: np.ndarray = None
     #: the share (0..1) of each wheel's torque residual a fault of that wheel alone would also
     #: show in the parity relations (:meth:`ResidualEvaluator.parity_confirmed`; None: all)
@@ -379,13 +382,15 @@ class ResidualEvaluator:
                                            bound_weights(PRIOR_SETTINGS, family))
                         for family in BOUND_TERMS}
         self.kinematics = model.kinematics
+        self.dynamics = model.dynamics
+        self._speed_uncertainty = SPEED_NOISE_SIGMAS * settings.speed_sigma  # [rad/s]
         #: each wheel's share (n,) of the parity relations (``Kinematics.parity_basis``)
         self._parity_weight = np.sum(self.kinematics.parity_basis ** 2, axis=1)
         #: the wheels slip beyond calibration where the speed no rigid motion explains exceeds
         #: what calibration measured (widened by its margin) and three times the speed
         #: reading's noise on it [rad/s] (inf: never)
         self.slip_limit = ((1.0 + settings.calibration_range_margin) * settings.calibrated_slip
-                           + FROZEN_NOISE_SIGMAS * settings.speed_sigma)
+                           + SPEED_NOISE_SIGMAS * settings.speed_sigma)
         self._slip_stamp = NEVER  # [s] of the last row in which the wheels slipped so
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
         self._silent_since = None  # (n,) stamp from which each wheel's silence counts [s]
@@ -433,6 +438,17 @@ class ResidualEvaluator:
         last = last_true_value(slip, stamps, self._slip_stamp)
         self._slip_stamp = float(last[-1])
         return stamps - last < self.settings.breakaway_time
+
+    def shift_scale(self, learned_bound: np.ndarray, velocity: np.ndarray,
+                    load: np.ndarray | float) -> np.ndarray:
+        """The scale [N·m] (N, n) of each wheel's torque residual's shift from its recent level
+        (the decision's shift test): the torque bound's learned part ``learned_bound`` (N, n)
+        (without its allowances for steady biases, which cancel in a departure from the level),
+        and the change the Coulomb friction may make at the speeds ``velocity`` (N, n) [rad/s]
+        the reading cannot tell apart (``Dynamics.coulomb_span`` within SPEED_NOISE_SIGMAS x
+        ``speed_sigma``: a standing or creeping wheel's static friction), at the load factor
+        ``load`` (scalar or (N, 1))."""
+        return learned_bound + np.abs(load) * self.dynamics.coulomb_span(velocity, self._speed_uncertainty)
 
     def parity_confirmed(self, torque_residual: np.ndarray, slipping: np.ndarray) -> np.ndarray:
         """The share (0..1) (N, n) of each wheel's torque residual ``torque_residual`` (N, n)
@@ -611,7 +627,7 @@ class ResidualEvaluator:
         repeated position reading evidence (a lagging speed reading keeps turning for a while
         after the wheel stops; a noisy one is not zero at rest; an interval too short for a tick
         proves nothing)."""
-        measured = np.maximum(0.0, np.abs(mean_speed) - FROZEN_NOISE_SIGMAS * self.settings.speed_sigma)
+        measured = np.maximum(0.0, np.abs(mean_speed) - SPEED_NOISE_SIGMAS * self.settings.speed_sigma)
         speed = np.where(velocity_mode, np.minimum(measured, np.abs(target)), measured)
         return speed * step >= FROZEN_MIN_TICKS * self.position_quantum
 
@@ -719,7 +735,7 @@ class ResidualEvaluator:
             velocity=velocity, torque=torque, velocity_mode=p.velocity_mode, command=p.commanded,
             frozen=frozen, effort_frozen=effort_frozen, position_frozen=position_frozen,
             silent=np.zeros((rows, n)), load_factor=p.load_factor, command_speed=p.from_commands,
-            outside_calibration=outside, torque_scale=torque_u,
+            outside_calibration=outside, torque_scale=self.shift_scale(torque_u, velocity, load),
             torque_confirmed=self.parity_confirmed(torque_r, slipping), features=features)
         return batch.select(~restart) if restart.any() else batch
 

@@ -167,6 +167,22 @@ class WheelDynamics:
         v_s)`` [N·m], shape (..., n): :meth:`coulomb_torque` without the contact law."""
         return self.coulomb * np.tanh(np.asarray(velocity, dtype=float) / self.parameters.coulomb_velocity_scale)
 
+    def coulomb_span(self, velocity, uncertainty):
+        """How much [N·m] (..., n) the wheels' Coulomb friction may change without a fault at
+        speeds read as ``velocity`` [rad/s] to within ``uncertainty`` [rad/s] (scalar or
+        broadcast): ``F_c (tanh((|w| + d) / v_s) - tanh((|w| - d) / v_s))`` over the speeds the
+        wheel may have, and ``2 F_c`` where one of them is standing (``|w| <= d``).
+
+        Why: the tanh is a model of a discontinuity. A standing wheel holds whatever the others
+        and the floor ask of it up to its static friction, either way; one turning slower than
+        the model's Coulomb step ``v_s`` is resolved meets friction anywhere between the levels
+        of the speeds it may have (stick-slip, the Stribeck dip): there its friction changes
+        with no change of the operating point the reading shows."""
+        speed = np.abs(np.asarray(velocity, dtype=float))
+        scale = self.parameters.coulomb_velocity_scale
+        within = np.tanh((speed + uncertainty) / scale) - np.tanh((speed - uncertainty) / scale)
+        return self.coulomb * np.where(speed <= uncertainty, 2.0, within)
+
     def contact_share(self, velocity, level):
         """The part of the Coulomb ``level`` (:meth:`coulomb_level` at ``velocity``) the motors
         feel under the contact law [N·m], shape (..., n); ``level`` itself without it."""
