@@ -77,3 +77,35 @@ def test_our_savitzky_golay_filter_is_scipys():
                 np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max())
     with pytest.raises(ValueError, match='window must be odd'):
         savgol_filter(np.zeros(10), 4, 2)
+
+
+def test_a_driver_that_holds_its_last_command_is_told_from_one_with_a_watchdog():
+    """One command, 2 rad/s on every wheel, sent once at t = 0 (a host that sends on change) in
+    a 3 s recording at 100 Hz: every sample after the watchdog's 0.25 s is past it. A driver
+    that holds the command keeps the wheels at 2 rad/s there, one with a watchdog stops them:
+    ``commands_held`` says which the speeds show. A command with every sample leaves no sample
+    past the watchdog, and nothing to tell (False)."""
+    from youbot_fdi.fdi.identify import commands_held, commands_past_watchdog
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model import load_model
+    from youbot_fdi.samples import CommandSample
+    model, settings = load_model('youbot'), FdiSettings()
+    assert settings.command_timeout == 0.25
+    time = np.round(np.arange(0.0, 3.0, 0.01), 6)
+    signs = model.kinematics.drive_signs  # commands are in the driver's convention
+    once = [CommandSample(0.0, 'velocity', signs * 2.0)]
+    viscous = np.asarray(model.dynamics.parameters.viscous_friction)
+
+    def recording(speed, commands):
+        speed = np.repeat(speed[:, None], 4, axis=1)
+        return RecordingArrays(time, np.cumsum(speed, axis=0) * 0.01, speed, viscous * speed, commands)
+
+    held = recording(np.full(len(time), 2.0), once)
+    assert commands_past_watchdog(held, settings).tolist() == (time > 0.25 + 1e-9).tolist()
+    assert commands_held(model, held, settings)
+    stopped = recording(np.where(time <= 0.25, 2.0, 0.0), once)
+    assert not commands_held(model, stopped, settings)
+    every_sample = [CommandSample(float(t), 'velocity', signs * 2.0) for t in time]
+    dense = recording(np.full(len(time), 2.0), every_sample)
+    assert not commands_past_watchdog(dense, settings).any()
+    assert not commands_held(model, dense, settings)

@@ -85,6 +85,8 @@ def run(args):
           f'ki {profile.firmware.velocity_ki:.3g} A/rad')
     if 'input_delay' in result.fdi:
         print(f'  input delay (commands to wheels): {1000 * result.fdi["input_delay"]:.1f} ms')
+    if result.info.get('command_watchdog'):
+        print(f'  driver\'s command watchdog: {result.info["command_watchdog"]}')
     best_at = int(np.argmin(result.sweep[1]))
     best = result.sweep[0][best_at]
     edge = ' (at its edge)' if best_at in (0, len(result.sweep[0]) - 1) else ''

@@ -70,6 +70,7 @@ FLOOR_FRACTION = 0.25  # a learned floor never goes below this fraction of the c
 MIN_SAMPLES = 50
 DELAY_STEP = 0.0025  # input-delay grid step [s]
 MAX_DELAY = 0.08  # [s]; the grid starts one sample interval early (commands stamped late)
+WATCHDOG = FdiSettings().command_timeout  # the shim's command watchdog, the searches' default [s]
 QUANTILE_ROWS = 6000  # rows the quantile regression uses at most (a random, seeded subset)
 #: The range of a bound feature calibration covered: this quantile of its values, and the same for
 #: the largest wheel torque measured (the whole range: it is what was seen).
@@ -400,12 +401,14 @@ def run_command_path(model, arrays, settings):
     return predictions.stamp[kept], predictions.from_commands[kept]
 
 
-def simulate_from_commands(model, arrays, input_delay=0.0, batch=None):
+def simulate_from_commands(model, arrays, input_delay=0.0, batch=None, command_timeout=WATCHDOG):
     """Wheel speeds predicted from the commands through the firmware loop (§5.2.3), the commands
-    acting ``input_delay`` [s] after their stamps; from ``batch`` (the generator already run over
-    ``arrays`` with that delay) where given."""
+    acting ``input_delay`` [s] after their stamps and held ``command_timeout`` [s] (inf: the
+    driver holds the last one); from ``batch`` (the generator already run over ``arrays`` with
+    that delay) where given."""
     if batch is None:
-        stamp, speed = run_command_path(model, arrays, FdiSettings(input_delay=input_delay))
+        stamp, speed = run_command_path(model, arrays, FdiSettings(input_delay=input_delay,
+                                                                   command_timeout=command_timeout))
     else:
         stamp, speed = batch.stamp, batch.command_speed
     predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
@@ -413,10 +416,11 @@ def simulate_from_commands(model, arrays, input_delay=0.0, batch=None):
     return predicted
 
 
-def _effort_error(model, arrays, input_delay):
+def _effort_error(model, arrays, input_delay, command_timeout=WATCHDOG):
     """Mean squared difference [(N·m)²] of measured and commanded effort (current mode), the
-    commands acting ``input_delay`` [s] after their stamps."""
-    batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay))
+    commands acting ``input_delay`` [s] after their stamps, held ``command_timeout`` [s]."""
+    batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay,
+                                                     command_timeout=command_timeout))
     rows = ~batch.velocity_mode
     return float(np.mean(batch.values['command'][rows] ** 2)) if rows.any() else 0.0
 
@@ -453,20 +457,21 @@ def for_search(arrays):
                    velocity=arrays.velocity[pick], torque=arrays.torque[pick])
 
 
-def fit_input_delay(model, arrays, delays, near=None):
+def fit_input_delay(model, arrays, delays, near=None, command_timeout=WATCHDOG):
     """The input delay [s] on the grid ``delays`` that best explains the measurements from the
     commands: the speeds through the firmware loop (velocity commands), else the measured effort
     (current-mode commands); the grid is searched every ``DELAY_COARSE_STEPS`` steps, then step
     by step around the best; from a delay found before (``near`` [s], a refit after the gains
-    moved) only downhill step by step from it. Returns (delay, mean squared errors on the grid:
-    NaN where not tried), or None without commands."""
+    moved) only downhill step by step from it; commands held ``command_timeout`` [s]. Returns
+    (delay, mean squared errors on the grid: NaN where not tried), or None without commands."""
     kinds = {c.kind for c in arrays.commands}
     if 'velocity' in kinds:
         def error(d):
-            return float(np.mean((arrays.velocity - simulate_from_commands(model, arrays, d)) ** 2))
+            predicted = simulate_from_commands(model, arrays, d, command_timeout=command_timeout)
+            return float(np.mean((arrays.velocity - predicted) ** 2))
     elif 'effort' in kinds:
         def error(d):
-            return _effort_error(model, arrays, d)
+            return _effort_error(model, arrays, d, command_timeout)
     else:
         return None
     errors = np.full(len(delays), np.nan)
@@ -498,6 +503,43 @@ def _descend(error, grid, start, errors):
     return float(grid[best]), errors
 
 
+def commands_past_watchdog(arrays, settings):
+    """Samples (k,) of the recording whose command in force (the latest stamped at or before the
+    sample less ``input_delay``) is older than the shim's watchdog (``command_timeout``) and
+    not a stop: where a driver with that watchdog stands and one that holds commands drives."""
+    commands = arrays.command_batch
+    late = arrays.time - settings.input_delay
+    index = np.searchsorted(commands.stamp, late, side='right') - 1
+    if not len(commands):
+        return np.zeros(len(arrays.time), dtype=bool)
+    picked = np.maximum(index, 0)
+    moving = np.abs(commands.values[picked]).max(axis=1) > 0.0
+    return (index >= 0) & moving & (late - commands.stamp[picked] > settings.command_timeout)
+
+
+def commands_held(model, arrays, settings):
+    """Whether the robot's driver holds its last command rather than stopping after
+    ``command_timeout`` without one (our shim's watchdog), as the recording shows: on the samples
+    :func:`commands_past_watchdog`, the speeds the command path predicts holding the command are
+    nearer the measured ones than those it predicts with the watchdog (mean absolute error).
+    False where no sample tells (commands sent with every sample, or only stops left standing).
+
+    Why: a driver that is sent commands only when they change (or at a few hertz) and keeps
+    them has no watchdog to model; judged as if it had, every wheel would be running away
+    from a command it was never given."""
+    past = commands_past_watchdog(arrays, settings)
+    if not past.any():
+        return False
+    errors = []
+    for timeout in (settings.command_timeout, math.inf):
+        stamp, speed = run_command_path(model, arrays, replace(settings, command_timeout=timeout))
+        rows = np.searchsorted(arrays.time, stamp)
+        judged = past[rows]
+        errors.append(float(np.nanmean(np.abs(arrays.velocity[rows[judged]] - speed[judged])))
+                      if judged.any() else math.nan)
+    return bool(errors[1] < errors[0])
+
+
 def nrmse(measured, predicted):
     """Per-wheel RMSE over the range of the measured signal [-]."""
     span = np.ptp(measured, axis=0)
@@ -518,8 +560,9 @@ def friction_sweep(model, arrays, values=None):
     return np.asarray(values, dtype=float), np.array(rmse)
 
 
-def fit_firmware_gains(model, arrays, input_delay=0.0):
-    """Velocity PI gains that make the command-path prediction match; None without velocity commands."""
+def fit_firmware_gains(model, arrays, input_delay=0.0, command_timeout=WATCHDOG):
+    """Velocity PI gains that make the command-path prediction match (commands acting
+    ``input_delay`` [s] late, held ``command_timeout`` [s]); None without velocity commands."""
     if not any(c.kind == 'velocity' for c in arrays.commands):
         return None
     kp = model.firmware.velocity_kp
@@ -529,7 +572,8 @@ def fit_firmware_gains(model, arrays, input_delay=0.0):
         kp, ki = np.exp(log_gains)
         trial = PlatformModel(replace(model.profile, firmware=replace(model.firmware, velocity_kp=kp,
                                                                       velocity_ki=ki)))
-        return float(np.mean((arrays.velocity - simulate_from_commands(trial, arrays, input_delay)) ** 2))
+        predicted = simulate_from_commands(trial, arrays, input_delay, command_timeout=command_timeout)
+        return float(np.mean((arrays.velocity - predicted) ** 2))
 
     # The simplex spans GAIN_SEARCH_STEP of each log gain (scipy's default, 5 % of each
     # coordinate, is a fraction of a per cent of kp near log 1 and tens of per cent of ki);
@@ -791,16 +835,20 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     info['sample_period'] = interval
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))
     firmware, delay = None, None
+    held = commands_held(model, arrays, settings)
+    timeout = math.inf if held else settings.command_timeout
+    info['command_watchdog'] = ('none: the wheels keep driving after the last command' if held
+                                else f'{settings.command_timeout:g} s (the shim\'s)')
     delays = delay_grid(interval)
     searched = for_search(arrays)
-    found = fit_input_delay(model, searched, delays) if fit_gains else None
+    found = fit_input_delay(model, searched, delays, command_timeout=timeout) if fit_gains else None
     if found is not None and any(c.kind == 'velocity' for c in arrays.commands):
         # Gains and delay trade off (a slower loop mimics a late one): alternate, from the delay.
         for _ in range(GAIN_DELAY_ROUNDS):
             delay = found[0]
-            firmware = fit_firmware_gains(model, searched, delay)
+            firmware = fit_firmware_gains(model, searched, delay, timeout)
             model = PlatformModel(replace(model.profile, firmware=firmware))
-            found = fit_input_delay(model, searched, delays, near=delay)
+            found = fit_input_delay(model, searched, delays, near=delay, command_timeout=timeout)
     if found is not None:
         delay, delay_errors = found
         tried = np.isfinite(delay_errors)
@@ -809,7 +857,8 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     sweep = friction_sweep(model, searched)
     nrmse_currents = nrmse(arrays.velocity, simulate_from_currents(model, arrays))
     settings = replace(settings, sample_interval=interval, speed_sigma=speed_noise(arrays),
-                       contact_share_floor=contact_share_floor(model, arrays, settings))
+                       contact_share_floor=contact_share_floor(model, arrays, settings),
+                       command_timeout=timeout)
     if delay is not None:
         settings = replace(settings, input_delay=delay)
     physics = run_generator(model, arrays, settings)  # the residuals both fits below start from
@@ -835,6 +884,7 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
                                                  RANGE_QUANTILE)) if np.isfinite(arrays.torque).any() \
         else math.inf
     fdi['contact_share_floor'] = settings.contact_share_floor
+    fdi['command_timeout'] = settings.command_timeout
     if delay is not None:
         fdi['input_delay'] = delay
     info.update({'recording': source, 'samples': int(len(arrays.time)),

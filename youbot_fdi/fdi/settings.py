@@ -55,7 +55,9 @@ class FdiSettings:
     # command_<w>: current mode, measured minus commanded effort [N·m]
     effort_sigma: float = 0.02
     effort_fraction: float = 0.1
-    command_timeout: float = 0.25  # the shim's watchdog: older commands mean zero speed [s]
+    #: the driver's watchdog: older commands mean zero speed [s] (the shim's; .inf: the driver
+    #: holds its last command, which identify finds where a recording shows it)
+    command_timeout: float = unbounded(0.25)
     startup_time: float = 0.5  # the command path is not judged while its prediction settles (after a
     # start, and after it took the measured state at a current calibration never saw) [s]
     # encoder_<w>: position increment minus speed * dt [rad]
