@@ -61,6 +61,25 @@ def test_a_type_refined_within_the_episode_waits_for_the_dwell():
     assert [(e.fault, e.stamp) for e in published] == [('unknown', 0.1), ('friction', 0.4)]
 
 
+def test_an_episodes_type_is_refined_once_among_the_classified_types():
+    """torque_loss, refined to friction (published after the dwell); the raw alarm drops and
+    returns as torque_loss, then friction, then torque_loss again, all within the episode: held
+    as friction, each return counted. A different kind of fault (stuck) is news and published;
+    after healing, a new episode names its type afresh."""
+    settings = LifecycleSettings(confirm_time=0.0, heal_time=0.5, dwell=0.3)
+    stamps = np.round(np.arange(0.0, 6.0, STEP), 6)
+    events = [raw(0.1, 'ERROR', fault='torque_loss'), raw(0.2, 'ERROR', fault='friction'),
+              raw(0.8, 'OK'), raw(0.9, 'ERROR', fault='torque_loss'),
+              raw(1.0, 'OK'), raw(1.1, 'ERROR', fault='friction'),
+              raw(1.2, 'OK'), raw(1.3, 'ERROR', fault='torque_loss'), raw(1.6, 'ERROR', fault='stuck'),
+              raw(2.0, 'OK'), raw(3.0, 'ERROR', fault='torque_loss')]
+    published = EventLifecycle(settings).feed(events, stamps)
+    assert [(e.level, e.fault, e.stamp) for e in published] == [
+        ('ERROR', 'torque_loss', 0.1), ('ERROR', 'friction', 0.4), ('ERROR', 'stuck', 1.6),
+        ('OK', 'stuck', 2.5), ('ERROR', 'torque_loss', 3.0)]
+    assert 'came back 3 time(s)' in published[3].detail
+
+
 @pytest.mark.parametrize('dwell', [0.05, 0.3])
 def test_no_two_events_of_a_component_closer_than_the_dwell(dwell):
     settings = LifecycleSettings(confirm_time=0.0, heal_time=0.02, dwell=dwell)

@@ -35,6 +35,11 @@ UNSEEN_OPERATING_POINT = 'unseen_operating_point'
 #: The base conditions reported beside the faults (WARN/OK, not tied to a wheel).
 CONDITIONS = (LOAD_CHANGE, UNSEEN_OPERATING_POINT)
 
+#: Fault types the decision's classification window decides between (the torque history: less
+#: torque than the current implies, or more friction; or not yet known): an episode's type may
+#: be refined among them once (youbot_fdi/fdi/decision.py, lifecycle.py).
+REFINABLE = (FaultKind.TORQUE_LOSS.value, FaultKind.FRICTION.value, FaultKind.UNKNOWN.value)
+
 #: Fault kinds a virtual base can inject (everything but ``unknown``).
 INJECTABLE = tuple(k for k in FaultKind if k is not FaultKind.UNKNOWN)
 

@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from youbot_fdi.errors import ConfigError
-from youbot_fdi.faults import FaultKind, Level, LOAD_CHANGE, UNSEEN_OPERATING_POINT
+from youbot_fdi.faults import FaultKind, Level, LOAD_CHANGE, REFINABLE, UNSEEN_OPERATING_POINT
 from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
 from youbot_fdi.fdi.recursions import (ExponentialAverage, NEVER, bounded_cusum, cusum,
@@ -75,8 +75,6 @@ AT_BOUND = 1.0  # the score |r| / u of a residual at its bound [-]
 MIN_STALE_SAMPLES = 2  # identical messages in a row (every field) that name comm_loss, not a freeze
 #: A wheel whose torque exceeds this many torque_sigma carries current (it is excited).
 EXCITED_TORQUE_SIGMAS = 3.0
-#: Fault types the classification window may still change after the alarm.
-REFINABLE = (FaultKind.TORQUE_LOSS.value, FaultKind.FRICTION.value, FaultKind.UNKNOWN.value)
 #: The torque shift CUSUMs stay below this many shift_threshold, so a shift that has ended stops
 #: counting within a few samples however long it lasted.
 SHIFT_CEILING = 2.0

@@ -9,7 +9,11 @@ condition) can flap where the evidence hovers at its threshold. What users see a
   counted (an intermittent fault is one episode with a count, not a flap);
 - **heal**: OK is published once the raw state has been OK for ``heal_time``;
 - **dwell**: no two events of one component closer than ``dwell`` (a type refined within an
-  episode waits for it).
+  episode waits for it);
+- **one type**: an episode's type is refined at most once among the types the classification
+  decides between (``REFINABLE``): the decision names an actuator fault afresh from the torque
+  history at hand each time its raw alarm returns, and a type that flips between
+  ``torque_loss`` and ``friction`` within one episode is that classification's noise, not news.
 
 Timed by the sample stamps of the rows the decision judged, never by a wall clock, so a replay
 and the live nodes publish the same events; :meth:`EventLifecycle.feed` takes a block of rows
@@ -23,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from youbot_fdi.faults import CONDITIONS, Level
+from youbot_fdi.faults import CONDITIONS, Level, REFINABLE
 
 if TYPE_CHECKING:  # names in annotations only
     from collections.abc import Iterable
@@ -58,6 +62,7 @@ class Episode:
     raw_since: float = NEVER  # [s] when the raw (level, fault) began
     last_event: float = NEVER  # [s] of the last published event
     returns: int = 0  # raw alarms that came back within the shown episode
+    refined: bool = False  # the shown episode's type was refined (among REFINABLE) once
 
     @property
     def shown_state(self):
@@ -119,9 +124,11 @@ class EventLifecycle:
                          if episode.returns else ''))
             published = replace(raw, stamp=stamp, fault=fault, residuals=(), detail=detail) \
                 if raw is not None else None
-            episode.returns = 0
+            episode.returns, episode.refined = 0, False
         else:
             published = replace(raw, stamp=stamp)
+            was = episode.shown_state[1]
+            episode.refined |= was in REFINABLE and raw.fault in REFINABLE  # within the episode
         episode.shown = published
         episode.last_event = stamp
         return published
@@ -131,6 +138,10 @@ class EventLifecycle:
         """A raw event: the component's raw state changes (or, the same state, its detail)."""
         key = component(event)
         episode = self.episodes.setdefault(key, Episode())
+        shown = episode.shown_state
+        if (episode.refined and event.level == shown[0] and event.fault != shown[1]
+                and event.fault in REFINABLE and shown[1] in REFINABLE):
+            event = replace(event, fault=shown[1])  # refined once already: the episode's type
         state = (OK, '') if event.level == OK else (event.level, event.fault)
         if state == episode.raw_state:
             if state[0] != OK:
