@@ -76,6 +76,21 @@ def test_a_command_is_in_force_by_its_stamp_not_by_when_it_arrived(model):
     np.testing.assert_allclose(target, signs * np.array([[1.0] * 4, [1.0] * 4, [2.0] * 4, [2.0] * 4]))
 
 
+@pytest.mark.parametrize('timeout', [0.25, math.inf])
+def test_a_command_held_by_the_driver_stays_in_force_none_before_the_first(model, timeout):
+    """With the shim's watchdog (0.25 s) a command 0.5 s old means zero speed; with a driver that
+    holds its last command (command_timeout inf) it stays in force. Before the first command
+    there is none: zero speed either way (not the command to come)."""
+    from youbot_fdi.samples import CommandBatch
+    generator = ResidualGenerator(model, replace(FdiSettings(), command_timeout=timeout))
+    commands = CommandBatch(np.array([1.0]), np.array([True]), np.array([[1.0, 1.0, 1.0, 1.0]]))
+    stamps = np.array([0.5, 1.0, 1.1, 1.5])
+    _, target = generator.observer._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
+    held = 1.0 if math.isinf(timeout) else 0.0
+    expected = np.array([[0.0] * 4, [1.0] * 4, [1.0] * 4, [held] * 4]) * model.kinematics.drive_signs
+    np.testing.assert_allclose(target, expected)
+
+
 @pytest.mark.parametrize('stamping', ['before', 'with', 'after'])
 def test_commands_stamped_before_with_or_after_their_samples_give_no_false_alarm(stamping, tmp_path):
     """A robot stamps its commands one way; calibrated on its own recording, another drive of it

@@ -508,10 +508,10 @@ def commands_past_watchdog(arrays, settings):
     sample less ``input_delay``) is older than the shim's watchdog (``command_timeout``) and
     not a stop: where a driver with that watchdog stands and one that holds commands drives."""
     commands = arrays.command_batch
-    late = arrays.time - settings.input_delay
-    index = np.searchsorted(commands.stamp, late, side='right') - 1
     if not len(commands):
         return np.zeros(len(arrays.time), dtype=bool)
+    late = arrays.time - settings.input_delay
+    index = np.searchsorted(commands.stamp, late, side='right') - 1
     picked = np.maximum(index, 0)
     moving = np.abs(commands.values[picked]).max(axis=1) > 0.0
     return (index >= 0) & moving & (late - commands.stamp[picked] > settings.command_timeout)

@@ -407,7 +407,8 @@ class ModelObserver:
         else:
             command_stamp = np.full(len(stamp), -np.inf)
             velocity_mode, values = np.ones(len(stamp), dtype=bool), np.zeros((len(stamp), self.n))
-        expired = stamp - (command_stamp + delay) > self.settings.command_timeout
+        # none yet: zero speed, whatever the watchdog (an infinite one too: a driver that holds)
+        expired = none | (stamp - (command_stamp + delay) > self.settings.command_timeout)
         first_kept = int(index[-1]) if len(stamp) else len(known) - MAX_PENDING_COMMANDS
         first_kept = max(first_kept, len(known) - MAX_PENDING_COMMANDS, 0)
         self._known_commands = known if first_kept == 0 else CommandBatch(
