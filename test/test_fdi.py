@@ -197,8 +197,10 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
                                                    'speed_sigma', 'calibrated_effort',
                                                    'calibrated_speed_range', 'calibrated_slip',
                                                    'family_thresholds',
-                                                   'shift_threshold'}
+                                                   'shift_threshold', 'command_timeout'}
     assert profile.fdi['contact_share_floor'] == 0.0  # per-wheel friction: no contact law to bound
+    assert profile.fdi['command_timeout'] == 0.25  # commands with every sample: the shim's watchdog
+    assert "command watchdog: 0.25 s (the shim's)" in out
     assert profile.identification['friction_sweep']['rmse']
     assert (tmp_path / 'sweep.png').stat().st_size > 5_000
     # The identified parameters still detect and isolate, and stay quiet on nominal data.
