@@ -384,8 +384,11 @@ class ResidualEvaluator:
         self.kinematics = model.kinematics
         self.dynamics = model.dynamics
         self._speed_uncertainty = SPEED_NOISE_SIGMAS * settings.speed_sigma  # [rad/s]
-        #: each wheel's share (n,) of the parity relations (``Kinematics.parity_basis``)
-        self._parity_weight = np.sum(self.kinematics.parity_basis ** 2, axis=1)
+        #: each wheel's share (n,) of the parity relations (``Kinematics.parity_basis``), |B_w|^2:
+        #: the wheels they see, and that share (1 for the others, which it does not divide)
+        weight = np.sum(self.kinematics.parity_basis ** 2, axis=1)
+        self._parity_observable = weight > RANK_TOLERANCE
+        self._parity_weight = np.where(self._parity_observable, weight, 1.0)
         #: the wheels slip beyond calibration where the speed no rigid motion explains exceeds
         #: what calibration measured (widened by its margin) and three times the speed
         #: reading's noise on it [rad/s] (inf: never)
@@ -468,18 +471,20 @@ class ResidualEvaluator:
         basis = self.kinematics.parity_basis
         if not basis.shape[1]:
             return share
-        observable = self._parity_weight > RANK_TOLERANCE
         known = np.isfinite(torque_residual).all(axis=1) & ~slipping
-        if not known.any():
+        every = known.all()  # (usually; always live) no rows to pick
+        if not every and not known.any():
             return share
-        residual = torque_residual[known]
-        parity = residual @ basis  # (M, n - 3)
-        alone = (parity @ basis.T) / np.where(observable, self._parity_weight, 1.0)
+        residual = torque_residual if every else torque_residual[known]
+        alone = ((residual @ basis) @ basis.T) / self._parity_weight  # (M, n)
         size = np.abs(residual)
-        with np.errstate(invalid='ignore', divide='ignore'):
-            confirmed = np.where(np.sign(alone) == np.sign(residual),
-                                 np.minimum(1.0, np.abs(alone) / size), 0.0)
-        share[known] = np.where(observable & (size > 0.0), confirmed, 1.0)
+        judged = self._parity_observable & (size > 0.0)
+        ratio = np.divide(np.abs(alone), size, out=np.ones_like(size), where=judged)
+        confirmed = np.where(judged, np.where(np.sign(alone) == np.sign(residual),
+                                              np.minimum(1.0, ratio), 0.0), 1.0)
+        if every:
+            return confirmed
+        share[known] = confirmed
         return share
 
     # ------------------------------------------------------------------ missing readings
