@@ -39,7 +39,7 @@ import scipy.optimize
 from youbot_fdi.errors import FdiError
 from youbot_fdi.fdi import alarm_rate
 from youbot_fdi.fdi.learned import fit_torque_correction, inertial_feature
-from youbot_fdi.fdi.observer import ModelObserver
+from youbot_fdi.fdi.observer import ModelObserver, commands_in_force
 from youbot_fdi.fdi.recursions import savgol_filter
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, bound_weights, FAMILIES, ResidualEvaluator,
                                       ResidualGenerator, ResidualSpread)
@@ -510,11 +510,10 @@ def commands_past_watchdog(arrays, settings):
     commands = arrays.command_batch
     if not len(commands):
         return np.zeros(len(arrays.time), dtype=bool)
-    late = arrays.time - settings.input_delay
-    index = np.searchsorted(commands.stamp, late, side='right') - 1
-    picked = np.maximum(index, 0)
-    moving = np.abs(commands.values[picked]).max(axis=1) > 0.0
-    return (index >= 0) & moving & (late - commands.stamp[picked] > settings.command_timeout)
+    index, expired = commands_in_force(commands.stamp, arrays.time, settings.input_delay,
+                                       settings.command_timeout)
+    moving = np.abs(commands.values[np.maximum(index, 0)]).max(axis=1) > 0.0
+    return (index >= 0) & moving & expired
 
 
 def commands_held(model, arrays, settings):

@@ -78,6 +78,21 @@ def signed_torque(torque: np.ndarray, reference: np.ndarray, signed_effort: bool
     return torque if signed_effort else np.abs(torque) * np.sign(reference)
 
 
+def commands_in_force(command_stamps: np.ndarray, stamps: np.ndarray, input_delay: float,
+                      command_timeout: float) -> tuple[np.ndarray, np.ndarray]:
+    """The command in force at each sample stamped ``stamps`` (N,) [s] by the clock rule: the
+    latest of ``command_stamps`` (sorted) [s] stamped at or before the sample less
+    ``input_delay`` [s]. Returns (its index (N,), -1 where there is none; expired (N,): none, or
+    older than ``command_timeout`` [s], which the driver's watchdog turns into zero speed; an
+    infinite one, a driver that holds its last command, leaves only "none")."""
+    index = np.searchsorted(command_stamps, stamps - input_delay, side='right') - 1
+    none = index < 0
+    if not len(command_stamps):
+        return index, none
+    age_from = np.where(none, -np.inf, command_stamps[np.maximum(index, 0)]) + input_delay
+    return index, none | (stamps - age_from > command_timeout)
+
+
 @dataclass(frozen=True)
 class Prediction:
     """What the model predicts for the sample stamped ``stamp`` (kinematic convention; per-wheel
@@ -396,19 +411,13 @@ class ModelObserver:
         if len(known) > 1 and (known.stamp[1:] < known.stamp[:-1]).any():
             order = np.argsort(known.stamp, kind='stable')
             known = CommandBatch(known.stamp[order], known.velocity_mode[order], known.values[order])
-        delay = self.settings.input_delay
-        received = np.searchsorted(known.stamp, stamp - delay, side='right')
-        index = received - 1
-        pick = np.maximum(index, 0)
-        none = index < 0
+        index, expired = commands_in_force(known.stamp, stamp, self.settings.input_delay,
+                                           self.settings.command_timeout)
         if len(known):
-            command_stamp = np.where(none, -np.inf, known.stamp[pick])
+            pick = np.maximum(index, 0)
             velocity_mode, values = known.velocity_mode[pick], known.values[pick]
         else:
-            command_stamp = np.full(len(stamp), -np.inf)
             velocity_mode, values = np.ones(len(stamp), dtype=bool), np.zeros((len(stamp), self.n))
-        # none yet: zero speed, whatever the watchdog (an infinite one too: a driver that holds)
-        expired = none | (stamp - (command_stamp + delay) > self.settings.command_timeout)
         first_kept = int(index[-1]) if len(stamp) else len(known) - MAX_PENDING_COMMANDS
         first_kept = max(first_kept, len(known) - MAX_PENDING_COMMANDS, 0)
         self._known_commands = known if first_kept == 0 else CommandBatch(

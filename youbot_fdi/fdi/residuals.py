@@ -383,7 +383,8 @@ class ResidualEvaluator:
                         for family in BOUND_TERMS}
         self.kinematics = model.kinematics
         self.dynamics = model.dynamics
-        self._speed_uncertainty = SPEED_NOISE_SIGMAS * settings.speed_sigma  # [rad/s]
+        #: how far a speed reading may be from the speed (SPEED_NOISE_SIGMAS x speed_sigma) [rad/s]
+        self._speed_uncertainty = SPEED_NOISE_SIGMAS * settings.speed_sigma
         #: each wheel's share (n,) of the parity relations (``Kinematics.parity_basis``), |B_w|^2:
         #: the wheels they see, and that share (1 for the others, which it does not divide)
         weight = np.sum(self.kinematics.parity_basis ** 2, axis=1)
@@ -393,7 +394,7 @@ class ResidualEvaluator:
         #: what calibration measured (widened by its margin) and three times the speed
         #: reading's noise on it [rad/s] (inf: never)
         self.slip_limit = ((1.0 + settings.calibration_range_margin) * settings.calibrated_slip
-                           + SPEED_NOISE_SIGMAS * settings.speed_sigma)
+                           + self._speed_uncertainty)
         self._slip_stamp = NEVER  # [s] of the last row in which the wheels slipped so
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
         self._silent_since = None  # (n,) stamp from which each wheel's silence counts [s]
@@ -632,7 +633,7 @@ class ResidualEvaluator:
         repeated position reading evidence (a lagging speed reading keeps turning for a while
         after the wheel stops; a noisy one is not zero at rest; an interval too short for a tick
         proves nothing)."""
-        measured = np.maximum(0.0, np.abs(mean_speed) - SPEED_NOISE_SIGMAS * self.settings.speed_sigma)
+        measured = np.maximum(0.0, np.abs(mean_speed) - self._speed_uncertainty)
         speed = np.where(velocity_mode, np.minimum(measured, np.abs(target)), measured)
         return speed * step >= FROZEN_MIN_TICKS * self.position_quantum
 
