@@ -71,7 +71,7 @@ def test_a_command_is_in_force_by_its_stamp_not_by_when_it_arrived(model):
     commands = CommandBatch(np.array([1.0, 2.0]), np.array([True, True]),
                             np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0]]))
     stamps = np.array([1.0, 1.1, 2.0, 2.01])
-    _, target = generator.observer._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
+    _, target, _ = generator.observer._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
     signs = model.kinematics.drive_signs
     np.testing.assert_allclose(target, signs * np.array([[1.0] * 4, [1.0] * 4, [2.0] * 4, [2.0] * 4]))
 
@@ -85,10 +85,26 @@ def test_a_command_held_by_the_driver_stays_in_force_none_before_the_first(model
     generator = ResidualGenerator(model, replace(FdiSettings(), command_timeout=timeout))
     commands = CommandBatch(np.array([1.0]), np.array([True]), np.array([[1.0, 1.0, 1.0, 1.0]]))
     stamps = np.array([0.5, 1.0, 1.1, 1.5])
-    _, target = generator.observer._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
+    _, target, _ = generator.observer._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
     held = 1.0 if math.isinf(timeout) else 0.0
     expected = np.array([[0.0] * 4, [1.0] * 4, [1.0] * 4, [held] * 4]) * model.kinematics.drive_signs
     np.testing.assert_allclose(target, expected)
+
+
+def test_the_latest_command_sent_is_known_while_the_delay_holds_it_back(model):
+    """With a 0.1 s input delay, a command stamped at 1.05 s is sent but not yet acting at
+    1.1 s: the command in force is the one of 1.0 s, the latest the one of 1.05 s. Before any
+    command acts (1.02 s) the target is zero speed and the latest the one of 1.0 s; once the
+    newest acts (1.2 s) both agree. A command of the other mode is not the latest of this one."""
+    from youbot_fdi.samples import CommandBatch
+    generator = ResidualGenerator(model, replace(FdiSettings(), input_delay=0.1))
+    commands = CommandBatch(np.array([1.0, 1.05, 1.3]), np.array([True, True, False]),
+                            np.array([[1.0] * 4, [2.0] * 4, [0.1] * 4]))
+    stamps = np.array([1.02, 1.1, 1.2, 1.35])
+    _, target, latest = generator.observer._commands_in_force(stamps, commands, np.zeros(4, dtype=int))
+    signs = model.kinematics.drive_signs
+    np.testing.assert_allclose(target, signs * np.array([[0.0] * 4, [1.0] * 4, [2.0] * 4, [2.0] * 4]))
+    np.testing.assert_allclose(latest, signs * np.array([[1.0] * 4, [2.0] * 4, [2.0] * 4, [2.0] * 4]))
 
 
 @pytest.mark.parametrize('stamping', ['before', 'with', 'after'])

@@ -37,8 +37,8 @@ def test_prediction_vector_round_trip_is_exact():
     names, signs = model.wheel_names, model.kinematics.drive_signs
     rng = np.random.default_rng(3)
     wheels = {f: rng.normal(size=4) for f in ('from_currents', 'from_commands', 'commands_before',
-                                              'commanded', 'commanded_before', 'explained', 'friction',
-                                              'unseen_friction')}
+                                              'commanded', 'commanded_before', 'commanded_latest',
+                                              'explained', 'friction', 'unseen_friction')}
     prediction = Prediction(stamp=1.5, since=1.49, velocity_mode=False, load_factor=1.2, **wheels)
     labels, values = Prediction.labels(names), prediction.to_vector(signs)
     back = Prediction.from_labelled(1.5, labels, values, names, signs)

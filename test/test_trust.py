@@ -284,12 +284,21 @@ def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(m
     assert np.all(restarted == 0.0)
     # the bound: the larger of the unseen friction and the carried torque, through the compliance
     speed, target = np.full((1, 4), 2.0), np.full((1, 4), 2.0)
-    args = (speed, np.zeros((1, 4)), speed, speed, target, target, np.ones((1, 1), dtype=bool),
+    args = (speed, np.zeros((1, 4)), speed, speed, target, target, target, np.ones((1, 1), dtype=bool),
             np.zeros((1, 1), dtype=bool))
     _, plain, *_ = evaluator._command_terms(*args, np.zeros((1, 4)), np.zeros((1, 4)), step[:1])
     _, allowed, *_ = evaluator._command_terms(*args, np.full((1, 4), 0.05), carried[-1:], step[:1])
     extra = np.maximum(0.05, np.abs(carried[-1])) / stiffness
     np.testing.assert_allclose(allowed - plain, extra[None])
+    # a command sent but not yet acting: the step to it is allowed (velocity mode only)
+    latest = target + np.array([[1.5, -0.5, 0.0, 2.0]])
+    sent = (speed, np.zeros((1, 4)), speed, speed, target, target, latest)
+    flags = (np.zeros((1, 1), dtype=bool), np.zeros((1, 4)), np.zeros((1, 4)), step[:1])
+    _, ahead, *_ = evaluator._command_terms(*sent, np.ones((1, 1), dtype=bool), *flags)
+    np.testing.assert_allclose(ahead - plain, np.abs(latest - target))
+    _, effort_plain, *_ = evaluator._command_terms(*args[:7], np.zeros((1, 1), dtype=bool), *flags)
+    _, effort_ahead, *_ = evaluator._command_terms(*sent, np.zeros((1, 1), dtype=bool), *flags)
+    np.testing.assert_array_equal(effort_ahead, effort_plain)
 
 
 def test_a_wheel_is_silent_from_its_first_sample_without_a_reading_not_across_a_gap(model):

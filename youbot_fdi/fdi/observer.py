@@ -67,7 +67,7 @@ MAX_PENDING_COMMANDS = 256
 SCAN_WINDOW = 64
 #: Per-wheel fields of a prediction, in labelled-vector order (see Prediction.to_labelled).
 WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
-                'commanded_before', 'explained', 'friction', 'unseen_friction')
+                'commanded_before', 'commanded_latest', 'explained', 'friction', 'unseen_friction')
 #: Scalar fields of a prediction, after the per-wheel ones.
 SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor', 'outside_calibration', 'resynced')
 
@@ -105,6 +105,9 @@ class Prediction:
     commands_before: np.ndarray  # from_commands at ``since`` [rad/s]
     commanded: np.ndarray  # [rad/s] or [N·m]
     commanded_before: np.ndarray  # the command in force at ``since``
+    #: the latest command stamped at or before ``stamp``, of the mode in force: sent, but not yet
+    #: acting by the input delay (``commanded`` where there is none newer) [rad/s] or [N·m]
+    commanded_latest: np.ndarray
     velocity_mode: bool
     explained: np.ndarray  # [N·m]
     friction: np.ndarray  # [N·m]
@@ -171,6 +174,7 @@ class PredictionBatch:
     commands_before: np.ndarray
     commanded: np.ndarray
     commanded_before: np.ndarray
+    commanded_latest: np.ndarray
     velocity_mode: np.ndarray
     explained: np.ndarray
     friction: np.ndarray
@@ -394,7 +398,9 @@ class ModelObserver:
             np.concatenate([known.values[keep:], self.signs * np.asarray(sample.values, dtype=float)[None]]))
 
     def _commands_in_force(self, stamp, commands=None, commands_before=None):
-        """(velocity mode (N,) bool, target (N, n) kinematic) at each stamp (N,).
+        """(velocity mode (N,) bool, target (N, n) kinematic, latest (N, n)) at each stamp (N,):
+        ``latest`` is the newest known command stamped at or before the sample, of the mode in
+        force (the target where none is newer: a command sent, not yet acting by the input delay).
 
         The clock rule (docs/fdi.md): every message is placed by its own stamp, never by when it
         arrived. In force at a sample stamped t: the latest known command stamped at or before
@@ -416,13 +422,20 @@ class ModelObserver:
         if len(known):
             pick = np.maximum(index, 0)
             velocity_mode, values = known.velocity_mode[pick], known.values[pick]
+            newest = np.searchsorted(known.stamp, stamp, side='right') - 1
+            newer = (newest > index) & (known.velocity_mode[np.maximum(newest, 0)] == velocity_mode)
         else:
             velocity_mode, values = np.ones(len(stamp), dtype=bool), np.zeros((len(stamp), self.n))
+            newer = np.zeros(len(stamp), dtype=bool)
         first_kept = int(index[-1]) if len(stamp) else len(known) - MAX_PENDING_COMMANDS
         first_kept = max(first_kept, len(known) - MAX_PENDING_COMMANDS, 0)
         self._known_commands = known if first_kept == 0 else CommandBatch(
             known.stamp[first_kept:], known.velocity_mode[first_kept:], known.values[first_kept:])
-        return velocity_mode | expired, np.where(expired[:, None], 0.0, values)
+        target = latest = np.where(expired[:, None], 0.0, values)
+        if newer.any():
+            latest = target.copy()
+            latest[newer] = known.values[newest[newer]]
+        return velocity_mode | expired, target, latest
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -627,10 +640,10 @@ class ModelObserver:
         s, n, rows = self.settings, self.n, len(joints)
         stamp = joints.stamp
         velocity, torque = self.signs * joints.velocity, self.signs * joints.effort
-        velocity_mode, target = self._commands_in_force(stamp, commands, commands_before)
+        velocity_mode, target, latest = self._commands_in_force(stamp, commands, commands_before)
         if rows == 0:
             empty = np.empty((0, n))
-            return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 5,
+            return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 6,
                                    velocity_mode, empty, empty, empty, np.empty(0), np.empty(0),
                                    np.empty(0))
         first = self._last is None
@@ -701,6 +714,7 @@ class ModelObserver:
             from_currents=predicted, from_commands=speed,
             commands_before=shifted(command_before[:n], speed),
             commanded=target, commanded_before=shifted(self._last_target, target),
+            commanded_latest=latest,
             velocity_mode=velocity_mode, explained=explained, friction=friction,
             unseen_friction=unseen, load_factor=load, outside_calibration=outside,
             resynced=wheel_mask(~(own & (velocity_mode & ~restart)[:, None])))
