@@ -79,3 +79,33 @@ def test_bad_setpoints_and_mode_mixes_are_refused():
     seed = BaseSimulator(load_model('seed'))
     with pytest.raises(ModelError, match='mix'):
         seed.step(np.zeros(4), [ControlMode.CURRENT, ControlMode.VELOCITY] * 2)
+
+
+@pytest.mark.parametrize('ki', [8.8, 2.0, 0.05, 0.0])
+def test_the_loops_slowest_time_constant_matches_its_characteristic_roots(ki):
+    """With equal viscous friction b on every wheel the loop decouples along the mass matrix's
+    eigenvectors: each mode of inertia m answers m s^2 + (b + k_t k_p) s + k_t k_i = 0 (without an
+    integral gain: m s + b + k_t k_p = 0). The slowest time constant is 1 / the smallest decay rate
+    of those roots, by hand."""
+    from dataclasses import replace
+
+    from youbot_fdi.model import slowest_time_constant
+    from youbot_fdi.model.profile import PlatformModel
+    youbot = load_model('youbot')
+    b = 0.05
+    profile = replace(youbot.profile,
+                      dynamics=replace(youbot.dynamics.parameters, viscous_friction=(b,) * 4),
+                      firmware=replace(youbot.firmware, velocity_ki=ki))
+    model = PlatformModel(profile)
+    kt, kp = model.drive.torque_per_amp, model.firmware.velocity_kp
+    rates = []
+    for m in np.linalg.eigvalsh(model.dynamics.mass_matrix):
+        if ki == 0.0:
+            rates.append((b + kt * kp) / m)
+            continue
+        roots = np.roots([m, b + kt * kp, kt * ki])
+        rates.append(np.min(-roots.real))
+    expected = 1.0 / min(rates)
+    got = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
+    assert got == pytest.approx(expected, rel=1e-9)
+    assert got > 0.5 if 0.0 < ki < 1.0 else got < 0.5  # a weak integral forgets slowly

@@ -46,6 +46,7 @@ from youbot_fdi.fdi.learned import mask_wheels, wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import NEVER, last_true_value, run_lengths, scalar_recursion, shifted
+from youbot_fdi.model.firmware import slowest_time_constant
 from youbot_fdi.model.kinematics import RANK_TOLERANCE
 from youbot_fdi.samples import JointBatch
 from youbot_fdi.naming import wheel_suffix
@@ -84,6 +85,9 @@ FROZEN_MIN_TICKS = 2.0
 #: the Coulomb step it is (three sigma: a noisy reading passes it by chance in about one sample
 #: of 370 either way, 700 one way, and three in a row practically never).
 SPEED_NOISE_SIGMAS = 3.0
+#: A command-path prediction started from a guessed loop state is judged once the guess has faded
+#: through this many of the loop's slowest time constants (to e^-3, 5 %) [-]
+SETTLE_TIME_CONSTANTS = 3.0
 
 
 def bound_weights(settings: FdiSettings, family: str) -> np.ndarray:
@@ -371,6 +375,14 @@ class ResidualEvaluator:
         #: how fast a wheel's speed answers a torque disturbance under that gain, its own share of
         #: the inertia over the gain's stiffness, M_ii / (k_p k_t) (n,) [s] (0 without a loop)
         self.loop_time_constant = np.diag(self.mass_matrix) * self.loop_compliance
+        #: how long a velocity-mode command path started from a guessed state is not judged: the
+        #: configured startup_time, or SETTLE_TIME_CONSTANTS of the loop's slowest time constant
+        #: if longer [s]. Why: the guess (the integral the measured current implies, by
+        #: ``1 / k_i``) fades only as fast as the loop's slowest mode; judged before, a wrong
+        #: guess is judged as the wheel's fault. A loop with a weak integral forgets slowly (the
+        #: Robotino's identified k_i / k_p = 0.06 /s: 17 s; a youBot's 0.09 s).
+        self.settle_time = max(settings.startup_time, SETTLE_TIME_CONSTANTS * slowest_time_constant(
+            model.dynamics, drive.torque_per_amp, model.firmware))
         self._disturbance = np.zeros(self.n)  # that disturbance, low-passed (n,) [N·m]
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
@@ -701,14 +713,16 @@ class ResidualEvaluator:
             torque, prev_torque, velocity, prev_velocity, p.explained, p.friction, p.unseen_friction,
             load, step)
         observer_f = self._observer_features(p.from_currents)
-        # A wheel's command-path prediction settles for startup_time after it started from a
-        # guessed state: a restart, or the measured state taken where its current reached what
+        # A wheel's command-path prediction settles (settle_time; current mode: startup_time)
+        # after it started from a guessed state: a restart, or the measured state taken where its current reached what
         # calibration never saw (observer.py: the integral the measured current implies is only
         # a guess where the current limit acts, and the loop winds up unseen).
         started = last_true_value(restart[:, None] | mask_wheels(p.resynced, n), stamp, self._started)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.commanded_latest, p.velocity_mode[:, None], stamp[:, None] - started < s.startup_time, load * p.unseen_friction,
+            p.commanded_latest, p.velocity_mode[:, None],
+            stamp[:, None] - started < np.where(p.velocity_mode, self.settle_time, s.startup_time)[:, None],
+            load * p.unseen_friction,
             self._loop_disturbance(torque_r, step, restart), step)
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,

@@ -59,7 +59,8 @@ class FdiSettings:
     #: holds its last command, which identify finds where a recording shows it)
     command_timeout: float = unbounded(0.25)
     startup_time: float = 0.5  # the command path is not judged while its prediction settles (after a
-    # start, and after it took the measured state at a current calibration never saw) [s]
+    # start, and after it took the measured state at a current calibration never saw; velocity
+    # mode: at least three of the loop's slowest time constants, residuals.SETTLE_TIME_CONSTANTS) [s]
     # encoder_<w>: position increment minus speed * dt [rad]
     encoder_sigma: float = 0.002
     encoder_speed_fraction: float = 0.2

@@ -77,6 +77,18 @@ def velocity_loop_matrices(dynamics, torque_per_amp, firmware):
     return a_matrix, b_matrix
 
 
+def slowest_time_constant(dynamics, torque_per_amp, firmware) -> float:
+    """The velocity loop's slowest time constant [s] (no saturation): 1 / the smallest decay rate
+    of its speed and integral modes (:func:`velocity_loop_matrices`; the angles only integrate).
+    How long a wrong guess of the loop's state takes to fade by e. Without an integral gain the
+    integral acts on nothing: only the speed modes count. inf: a mode that never decays."""
+    n = dynamics.n_wheels
+    a_matrix, _ = velocity_loop_matrices(dynamics, torque_per_amp, firmware)
+    modes = a_matrix[n:, n:] if firmware.velocity_ki > 0.0 else a_matrix[n:2 * n, n:2 * n]
+    rate = float(np.min(-np.linalg.eigvals(modes).real))
+    return 1.0 / rate if rate > 0.0 else float('inf')
+
+
 def sampled_loop_spectral_radius(dynamics, torque_per_amp, firmware):
     """Spectral radius of the sampled (discrete) velocity loop, ignoring saturation.
 
