@@ -31,7 +31,9 @@ its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerat
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import functools
 import math
+import operator
 from typing import NamedTuple, TYPE_CHECKING
 
 import numpy as np
@@ -53,6 +55,7 @@ if TYPE_CHECKING:  # names in annotations only
 STAMP_COUNTERS = ('stamps_backwards', 'stamps_repeated', 'gaps')
 COMMANDS_LATE = 'commands_late'  # the counter of commands in force for samples judged before them
 DT_KEY_DECIMALS = 4  # discretisations are cached per interval rounded to 0.1 ms
+DISCRETE_CACHE_SIZE = 1024  # discretisations kept across observers (about 0.4 kB each for n = 4)
 #: The fewest voting wheels whose median is the load factor (a median of three is moved by no
 #: single wheel).
 MIN_LOAD_VOTES = 3
@@ -91,6 +94,18 @@ def commands_in_force(command_stamps: np.ndarray, stamps: np.ndarray, input_dela
         return index, none
     age_from = np.where(none, -np.inf, command_stamps[np.maximum(index, 0)]) + input_delay
     return index, none | (stamps - age_from > command_timeout)
+
+
+@functools.lru_cache(maxsize=DISCRETE_CACHE_SIZE)
+def _discretised(a_bytes: bytes, b_bytes: bytes, n: int, dt: float) -> tuple[np.ndarray, ...]:
+    """(Phi, Gamma, Gamma^-1) of the wheel dynamics ``a``, ``b`` (n, n, as bytes: hashable) over
+    ``dt`` [s], read-only (shared by every observer of those dynamics)."""
+    a, b = (np.frombuffer(raw, dtype=float).reshape(n, n) for raw in (a_bytes, b_bytes))
+    phi, gamma = zoh_discretize(a, b, dt)
+    matrices = (phi, gamma, np.linalg.inv(gamma))
+    for matrix in matrices:
+        matrix.setflags(write=False)
+    return matrices
 
 
 @dataclass(frozen=True)
@@ -241,7 +256,8 @@ class ModelObserver:
         self.kp, self.ki = firmware.velocity_kp, firmware.velocity_ki
         self.torque_per_amp = drive.torque_per_amp
         #: one firmware period of the saturating loop: speed' = [phi | gamma k_t] [speed; current]
-        self._period_map = np.hstack([self._phi1, self._gamma1 * self.torque_per_amp])
+        #: (rows as Python floats: the stepped loop's)
+        self._period_map_rows = np.hstack([self._phi1, self._gamma1 * self.torque_per_amp]).tolist()
         self.max_current = drive.max_current
         self.max_torque = drive.max_torque  # [N·m] at the wheel
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
@@ -273,11 +289,11 @@ class ModelObserver:
             self.counters[name] += int(rows.sum())
 
     def _discrete(self, dt):
-        """(Phi, Gamma, Gamma^-1) over ``dt`` [s], cached per 0.1 ms."""
+        """(Phi, Gamma, Gamma^-1) over ``dt`` [s], cached per 0.1 ms (per observer, and across
+        observers of the same dynamics: identify's searches build one per trial of the gains)."""
         key = max(round(float(dt), DT_KEY_DECIMALS), 10.0 ** -DT_KEY_DECIMALS)
         if key not in self._cache:
-            phi, gamma = zoh_discretize(self._a_v, self._b_v, key)
-            self._cache[key] = (phi, gamma, np.linalg.inv(gamma))
+            self._cache[key] = _discretised(self._a_v.tobytes(), self._b_v.tobytes(), self.n, key)
         return self._cache[key]
 
     def _discrete_rows(self, dt):
@@ -467,20 +483,28 @@ class ModelObserver:
                 | ~np.isfinite(after).all(axis=1))  # a linear scan that overflowed (NaN >= x is False)
 
     def _stepped(self, state, steps, target, friction):
-        """``steps`` firmware periods of the saturating PI loop from ``state`` (2n,)."""
-        n, period = self.n, self.period
+        """``steps`` firmware periods of the saturating PI loop from ``state`` (2n,). In Python
+        floats: a period is a few operations on n numbers, where numpy's per-call overhead is
+        most of the cost (3x slower; identify steps thousands of saturated rows)."""
+        n, period, kp, ki = self.n, self.period, self.kp, self.ki
         limit, max_current = self._integral_limit, self.max_current
-        speed, integral = state[:n], state[n:]
-        drift = self._gamma1 @ friction  # constant over the interval
-        joint = np.empty(2 * n)  # [speed; current], one matrix product a period
+        speed, integral = state[:n].tolist(), state[n:].tolist()
+        goal = np.asarray(target, dtype=float).tolist()
+        drift = (self._gamma1 @ friction).tolist()  # constant over the interval
+        period_map = self._period_map_rows
         for _ in range(steps):
-            error = target - speed
-            integral = np.minimum(np.maximum(integral + error * period, -limit), limit)
-            joint[:n] = speed
-            joint[n:] = np.minimum(np.maximum(self.kp * error + self.ki * integral, -max_current),
-                                   max_current)
-            speed = self._period_map @ joint - drift
-        return np.concatenate([speed, integral])
+            joint = list(speed)  # [speed; current], one matrix product a period
+            for w in range(n):
+                error = goal[w] - speed[w]
+                # clamps written as comparisons: a NaN stays NaN, as in np.minimum/np.maximum
+                held = integral[w] + error * period
+                held = -limit if held < -limit else limit if held > limit else held
+                integral[w] = held
+                current = kp * error + ki * held
+                joint.append(-max_current if current < -max_current
+                             else max_current if current > max_current else current)
+            speed = [sum(map(operator.mul, row, joint)) - d for row, d in zip(period_map, drift)]
+        return np.array(speed + integral)
 
     def _command_step(self, state, steps, target, friction):
         """``steps`` firmware periods of the velocity loop from ``state`` (2n,): the exact linear
