@@ -483,37 +483,45 @@ class ModelObserver:
                 | ~np.isfinite(after).all(axis=1))  # a linear scan that overflowed (NaN >= x is False)
 
     def _stepped(self, state, steps, target, friction):
-        """``steps`` firmware periods of the saturating PI loop from ``state`` (2n,). In Python
-        floats: a period is a few operations on n numbers, where numpy's per-call overhead is
-        most of the cost (3x slower; identify steps thousands of saturated rows)."""
+        """``steps`` firmware periods of the saturating PI loop from ``state`` (2n,): (the state
+        after them, whether a limit acted in any period). In Python floats: a period is a few
+        operations on n numbers, where numpy's per-call overhead is most of the cost (3x slower;
+        identify steps thousands of saturated rows)."""
         n, period, kp, ki = self.n, self.period, self.kp, self.ki
         limit, max_current = self._integral_limit, self.max_current
         speed, integral = state[:n].tolist(), state[n:].tolist()
         goal = np.asarray(target, dtype=float).tolist()
         drift = (self._gamma1 @ friction).tolist()  # constant over the interval
         period_map = self._period_map_rows
+        clamped = False
         for _ in range(steps):
             joint = list(speed)  # [speed; current], one matrix product a period
             for w in range(n):
                 error = goal[w] - speed[w]
                 # clamps written as comparisons: a NaN stays NaN, as in np.minimum/np.maximum
                 held = integral[w] + error * period
-                held = -limit if held < -limit else limit if held > limit else held
+                if not -limit < held < limit:
+                    held = -limit if held <= -limit else limit if held >= limit else held
+                    clamped = True
                 integral[w] = held
                 current = kp * error + ki * held
-                joint.append(-max_current if current < -max_current
-                             else max_current if current > max_current else current)
+                if not -max_current < current < max_current:
+                    current = (-max_current if current <= -max_current
+                               else max_current if current >= max_current else current)
+                    clamped = True
+                joint.append(current)
             speed = [sum(map(operator.mul, row, joint)) - d for row, d in zip(period_map, drift)]
-        return np.array(speed + integral)
+        return np.array(speed + integral), clamped
 
     def _command_step(self, state, steps, target, friction):
-        """``steps`` firmware periods of the velocity loop from ``state`` (2n,): the exact linear
-        map unless the loop saturates, then period by period. Returns (new state, saturated)."""
+        """``steps`` firmware periods of the velocity loop from ``state`` (2n,), called where the
+        loop saturated: period by period while a limit acts in any of them, else the exact linear
+        map. Returns (new state, saturated)."""
+        stepped, saturated = self._stepped(state, steps, target, friction)
+        if saturated:
+            return stepped, True
         loop_a, loop_b, loop_c = self._loop_step(steps)
-        linear = loop_a @ state + loop_b @ target + loop_c @ friction
-        if self._saturated(state[None], linear[None], target[None])[0]:
-            return self._stepped(state, steps, target, friction), True
-        return linear, False
+        return loop_a @ state + loop_b @ target + loop_c @ friction, False
 
     def _command_path(self, dt, hold, held, velocity_mode, target, friction):
         """Command-path states (N, 2n) = [predicted speed, PI integral] after each row.
