@@ -269,6 +269,7 @@ class ModelObserver:
             TorqueCorrection.from_mapping(learned, self.n, str(model.profile.source)),
             range_margin=settings.calibration_range_margin))
         self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
+        self._commands_sorted = True  # _known_commands in stamp order (command() tells)
         self.signed_effort = drive.signed_effort
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
         self._load = (np.zeros(2 * self.n), 1.0)
@@ -342,13 +343,21 @@ class ModelObserver:
         low, high = self.settings.calibrated_speed_range
         if low <= 0.0 and math.isinf(high):
             return 0.0
-        speed = np.sqrt((mean_speed * mean_speed).sum(axis=-1, keepdims=True))  # the norm
-        if np.all((speed >= low) & (speed <= high)):  # within the range (usually): nothing missed
-            return 0.0
-        near = np.clip(speed, low, high)
-        scaled = mean_speed * np.divide(near, speed, out=np.ones_like(speed), where=speed > 0.0)
-        level = np.abs(self.friction * scaled + self._coulomb(scaled)[1])
-        return level * np.abs(speed - near) / np.maximum(near, MIN_CALIBRATED_SPEED)
+        if mean_speed.shape[0] == 1:  # one row (the live path): the same arithmetic in floats
+            speed = math.sqrt(sum(v * v for v in mean_speed[0].tolist()))
+            if low <= speed <= high:
+                return 0.0
+            near = min(max(speed, low), high)
+            scaled = mean_speed * (near / speed if speed > 0.0 else 1.0)
+            distance = abs(speed - near) / max(near, MIN_CALIBRATED_SPEED)
+        else:
+            speed = np.sqrt((mean_speed * mean_speed).sum(axis=-1, keepdims=True))  # the norm
+            if np.all((speed >= low) & (speed <= high)):  # within the range (usually): nothing missed
+                return 0.0
+            near = np.clip(speed, low, high)
+            scaled = mean_speed * np.divide(near, speed, out=np.ones_like(speed), where=speed > 0.0)
+            distance = np.abs(speed - near) / np.maximum(near, MIN_CALIBRATED_SPEED)
+        return np.abs(self.friction * scaled + self.model.dynamics.coulomb_level(scaled)) * distance
 
     def _loop_step(self, steps):
         """Exact unsaturated map of ``steps`` firmware periods of the PI loop.
@@ -407,6 +416,8 @@ class ModelObserver:
             self.counters[COMMANDS_LATE] += 1
             self._command_came_late = True
         known = self._known_commands
+        if len(known) and sample.stamp < known.stamp[-1]:
+            self._commands_sorted = False  # sorted again when next used
         keep = max(len(known) + 1 - MAX_PENDING_COMMANDS, 0)
         self._known_commands = CommandBatch(
             np.append(known.stamp[keep:], sample.stamp),
@@ -425,14 +436,16 @@ class ModelObserver:
         (``command_timeout``) or when there is none. Known: the commands received so far (live),
         or the chunk's (replay). Keeps the commands that may still come into force.
         """
-        known = self._known_commands
+        known, ordered = self._known_commands, self._commands_sorted
         if commands is not None and len(commands):
             known = CommandBatch(np.concatenate([known.stamp, commands.stamp]),
                                  np.concatenate([known.velocity_mode, commands.velocity_mode]),
                                  np.concatenate([known.values, self.signs * commands.values]))
-        if len(known) > 1 and (known.stamp[1:] < known.stamp[:-1]).any():
+            ordered = False  # not known until checked
+        if not ordered and len(known) > 1 and (known.stamp[1:] < known.stamp[:-1]).any():
             order = np.argsort(known.stamp, kind='stable')
             known = CommandBatch(known.stamp[order], known.velocity_mode[order], known.values[order])
+        self._commands_sorted = True  # what is kept below is sorted
         index, expired = commands_in_force(known.stamp, stamp, self.settings.input_delay,
                                            self.settings.command_timeout)
         if len(known):
@@ -447,10 +460,9 @@ class ModelObserver:
         first_kept = max(first_kept, len(known) - MAX_PENDING_COMMANDS, 0)
         self._known_commands = known if first_kept == 0 else CommandBatch(
             known.stamp[first_kept:], known.velocity_mode[first_kept:], known.values[first_kept:])
-        target = latest = np.where(expired[:, None], 0.0, values)
-        if newer.any():
-            latest = target.copy()
-            latest[newer] = known.values[newest[newer]]
+        target = np.where(expired[:, None], 0.0, values)
+        latest = (np.where(newer[:, None], known.values[np.maximum(newest, 0)], target) if newer.any()
+                  else target)
         return velocity_mode | expired, target, latest
 
     # ------------------------------------------------------------------ state

@@ -78,7 +78,7 @@ def nan_median(values: np.ndarray) -> np.ndarray:
         known = sorted(v for v in values.reshape(-1).tolist() if v == v)
         count = len(known)
         median = (known[(count - 1) // 2] + known[count // 2]) / 2.0 if count else np.nan
-        return np.full(values.shape[:-1], median)
+        return np.array(median).reshape(values.shape[:-1])
     ordered = np.sort(values, axis=-1).reshape(-1, width)  # NaN sort last
     count = (~np.isnan(values)).sum(axis=-1).reshape(-1)
     rows = np.arange(len(count))

@@ -375,6 +375,9 @@ class ResidualEvaluator:
         #: how fast a wheel's speed answers a torque disturbance under that gain, its own share of
         #: the inertia over the gain's stiffness, M_ii / (k_p k_t) (n,) [s] (0 without a loop)
         self.loop_time_constant = np.diag(self.mass_matrix) * self.loop_compliance
+        #: its inverse [1/s] (inf for 0 s: no memory; every step is positive)
+        self._loop_rate = np.divide(1.0, self.loop_time_constant,
+                                    out=np.full(self.n, np.inf), where=self.loop_time_constant > 0.0)
         #: how long a velocity-mode command path started from a guessed state is not judged: the
         #: configured startup_time, or SETTLE_TIME_CONSTANTS of the loop's slowest time constant
         #: if longer [s]. Why: the guess (the integral the measured current implies, by
@@ -625,6 +628,15 @@ class ResidualEvaluator:
         bound = np.where(settling, 1.0, mode_u)
         return residual, bound, velocity_f, effort_f
 
+    def _settling_limit(self, velocity_mode):
+        """How long a command path started from a guess is not judged, per row (N, 1) [s]
+        (a scalar where every row is of one mode: always live)."""
+        if velocity_mode.all():
+            return self.settle_time
+        if not velocity_mode.any():
+            return self.settings.startup_time
+        return np.where(velocity_mode, self.settle_time, self.settings.startup_time)[:, None]
+
     def _loop_disturbance(self, torque_residual, step, restart):
         """The torque each wheel carries beyond the model (its torque residual ``torque_residual``
         (N, n) [N·m], NaN: none known), low-passed with the loop's time constant
@@ -638,8 +650,7 @@ class ResidualEvaluator:
         runaway carries no such torque: its wheel does what its current says."""
         fresh = restart[:, None]
         known = np.where(np.isfinite(torque_residual) & ~fresh, torque_residual, 0.0)
-        with np.errstate(divide='ignore'):
-            keep = np.where(fresh, 0.0, np.exp(-step / self.loop_time_constant))  # 0 s: no memory
+        keep = np.where(fresh, 0.0, np.exp(-step * self._loop_rate))  # 0 s: no memory
         smoothed = scalar_recursion(keep, (1.0 - keep) * known, self._disturbance)
         self._disturbance = smoothed[-1]
         return smoothed
@@ -681,7 +692,7 @@ class ResidualEvaluator:
         predictions (:class:`~youbot_fdi.fdi.observer.PredictionBatch`, one row per sample, from
         :meth:`ModelObserver.update_batch` on the same block): a :class:`ResidualBatch` of every
         sample but those that restart (``predictions.restart``), with the bounds' features."""
-        s, n, rows = self.settings, self.n, len(joints)
+        n, rows = self.n, len(joints)
         p, restart = predictions, predictions.restart
         if rows == 0:
             empty, counts = np.empty((0, n)), np.empty((0, n), dtype=int)
@@ -721,7 +732,7 @@ class ResidualEvaluator:
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
             p.commanded_latest, p.velocity_mode[:, None],
-            stamp[:, None] - started < np.where(p.velocity_mode, self.settle_time, s.startup_time)[:, None],
+            stamp[:, None] - started < self._settling_limit(p.velocity_mode),
             load * p.unseen_friction,
             self._loop_disturbance(torque_r, step, restart), step)
         mean_speed = 0.5 * (velocity + prev_velocity)
