@@ -610,11 +610,13 @@ class ResidualEvaluator:
         toward a new command when it came into force, three bounds). After the delay the
         predicted transient's own allowance takes over. Also the features of both bounds."""
         s = self.settings
-        residual = np.where(settling, 0.0, np.where(velocity_mode, velocity - speed, torque - target))
+        speeds, efforts = bool(velocity_mode.any()), not velocity_mode.all()
+        measured = (np.where(velocity_mode, velocity - speed, torque - target) if speeds and efforts
+                    else velocity - speed if speeds else torque - target)
+        residual = np.where(settling, 0.0, measured)
         velocity_f = columns(1.0, np.abs(speed), np.maximum(np.abs(target - speed), np.abs(target - before)),
                              np.abs(speed - before) / step)
         effort_f = columns(1.0, np.abs(target))
-        speeds, efforts = bool(np.any(velocity_mode)), not np.all(velocity_mode)
         if efforts:
             effort_u = (self.bound('effort', effort_f)
                         + np.minimum(1.0, s.command_delay / step) * np.abs(target - previous_target))
