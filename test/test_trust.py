@@ -58,17 +58,31 @@ def test_the_operating_point_of_the_torque_levels_changes_beyond_its_range(model
     speeds = np.vstack([speeds, np.zeros((2, 4)), [[0.2, 0.0, 0.0, 0.0]], [[0.5, 0.0, 0.0, 0.0]]])
     expected = np.zeros(len(speeds), dtype=bool)
     expected[[4, 8, 11]] = True  # 2.7; to rest; 0.5 - 0.07 > stuck_speed + 0.03 at rest (not 0.2)
+    same_load = np.ones(len(speeds))
     batched = DecisionMaker(model.wheel_names, s, load_residual_data())
-    np.testing.assert_array_equal(batched.operating_point_changes(speeds), expected)
+    np.testing.assert_array_equal(batched.operating_point_changes(speeds, same_load), expected)
     one_by_one = DecisionMaker(model.wheel_names, s, load_residual_data())
-    rows = [bool(one_by_one.operating_point_changes(row[None])[0]) for row in speeds]
+    rows = [bool(one_by_one.operating_point_changes(row[None], load[None])[0])
+            for row, load in zip(speeds, same_load)]
     np.testing.assert_array_equal(rows, expected)
     # a Robotino's readings: two quantisation steps up now and then (0.6 > 0.45 + 0.03)
     quantised = np.tile(np.vstack([np.tile([1.4, -1.8, 0.4], (9, 1)), [[2.0, -1.8, 0.4]]]), (10, 1))
     noisy = DecisionMaker(model.wheel_names[:3], replace(s, speed_sigma=0.11), load_residual_data())
-    assert not noisy.operating_point_changes(quantised).any()
+    assert not noisy.operating_point_changes(quantised, np.ones(len(quantised))).any()
     assert DecisionMaker(model.wheel_names[:3], s, load_residual_data()).operating_point_changes(
-        quantised).any()  # the same jumps are moves for a reading without noise
+        quantised, np.ones(len(quantised))).any()  # the same jumps are moves for a reading without noise
+    # the load factor the explained friction is scaled by is part of the point: from a mean of 2,
+    # 2.4 is the same (0.4 < a quarter of 2); 2.7 is 0.6 from the mean 2.1 (> 0.525), another
+    # point, the reference after
+    steady, loads = np.full((6, 4), 2.0), np.array([2.0, 2.0, 2.4, 2.0, 2.7, 2.7])
+    moved = np.zeros(6, dtype=bool)
+    moved[4] = True
+    batched = DecisionMaker(model.wheel_names, s, load_residual_data())
+    np.testing.assert_array_equal(batched.operating_point_changes(steady, loads), moved)
+    one_by_one = DecisionMaker(model.wheel_names, s, load_residual_data())
+    np.testing.assert_array_equal(
+        [bool(one_by_one.operating_point_changes(row[None], load[None])[0]) for row, load in zip(steady, loads)],
+        moved)
 
 
 @pytest.mark.parametrize('speed_after, alarms', [(2.0, True), (4.0, False)])

@@ -166,9 +166,9 @@ class DecisionMaker:
         self._typical_bound = ExponentialAverage(self.n)  # ... and the log of its usual bound
         self._last_stamp = np.nan  # [s] of the last row judged
         self._rest_stamp = NEVER  # [s] of the last row in which every wheel stood
-        #: the sum [rad/s] (n,) and count of the wheel speeds read since the torque levels'
-        #: operating point started (count 0: none yet)
-        self._operating_point = (np.zeros(self.n), 0)
+        #: the sum (n + 1,) and count of the wheel speeds [rad/s] and load factors read since the
+        #: torque levels' operating point started (count 0: none yet)
+        self._operating_point = (np.zeros(self.n + 1), 0)
         self._pass = {}  # the states after each row of the last block judged (see _rewind)
         self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
         self._below = np.zeros(shape)  # excited time below the threshold since the last alarm [s]
@@ -230,31 +230,34 @@ class DecisionMaker:
         self._rest_stamp = float(rest[-1])
         return ~resting & (stamps - rest < self.settings.breakaway_time)
 
-    def operating_point_changes(self, velocity: np.ndarray) -> np.ndarray:
-        """Rows (N,) of speeds ``velocity`` (N, n) [rad/s] in which the wheels leave the operating
-        point the torque levels were learned at, which then starts afresh there. The operating
-        point is the mean of the speeds read since it started; a row leaves it when some wheel's
-        speed differs from that mean by more than ``shift_operating_range`` of the fastest wheel's
-        mean speed (or ``stuck_speed``, if more: slower is standing) plus the reading's noise
-        (``SPEED_NOISE_SIGMAS`` x ``speed_sigma``: a quantised or noisy reading is not a move).
-        The model's bias depends on the operating point (the contact law, the friction split, the
-        speed), so a level learned at one says nothing of the residual at another; a fault
-        changes the residual at the same one. Leaves the reference after the last row."""
-        velocity = np.asarray(velocity, dtype=float)
+    def operating_point_changes(self, velocity: np.ndarray, load_factor: np.ndarray) -> np.ndarray:
+        """Rows (N,) of speeds ``velocity`` (N, n) [rad/s] and load factors ``load_factor`` (N,)
+        [-] in which the wheels leave the operating point the torque levels were learned at, which
+        then starts afresh there. The operating point is the mean of the speeds and of the load
+        factor since it started; a row leaves it when some wheel's speed differs from that mean by
+        more than ``shift_operating_range`` of the fastest wheel's mean speed (or ``stuck_speed``,
+        if more: slower is standing) plus the reading's noise (``SPEED_NOISE_SIGMAS`` x
+        ``speed_sigma``: a quantised or noisy reading is not a move), or the load factor differs
+        from its mean by more than ``shift_operating_range`` of it. The model's bias depends on
+        the operating point (the contact law, the friction split, the speed, and the load factor
+        the explained friction is scaled by: a floor the factor has moved to is a model the level
+        was not learned with), so a level learned at one says nothing of the residual at another;
+        a fault changes the residual at the same one. Leaves the reference after the last row."""
+        points = np.concatenate([np.asarray(velocity, dtype=float),
+                                 np.asarray(load_factor, dtype=float).reshape(-1, 1)], axis=1)
         total, count = self._operating_point
-        if len(velocity) == 1 and count > 0:  # one row (the live path): the same, in plain steps
-            row = velocity[0]
+        if len(points) == 1 and count > 0:  # one row (the live path): the same, in plain steps
+            row = points[0]
             if not np.isfinite(row).all():
                 return np.zeros(1, dtype=bool)
-            mean = total / count
-            if float(np.max(np.abs(row - mean))) > self._operating_allowance(mean):
+            if self._away(row, total / count):
                 self._operating_point = (row.copy(), 1)
                 return np.ones(1, dtype=bool)
             self._operating_point = (total + row, count + 1)
             return np.zeros(1, dtype=bool)
-        changes = np.zeros(len(velocity), dtype=bool)
-        rows = np.flatnonzero(np.isfinite(velocity).all(axis=1))  # a wheel without a reading: skipped
-        usable = velocity[rows]
+        changes = np.zeros(len(points), dtype=bool)
+        rows = np.flatnonzero(np.isfinite(points).all(axis=1))  # a wheel without a reading: skipped
+        usable = points[rows]
         k = 0
         while k < len(usable):
             if count == 0:
@@ -264,7 +267,7 @@ class DecisionMaker:
             sums = total + np.cumsum(block, axis=0)
             means = np.concatenate([(total / count)[None],
                                     sums[:-1] / (count + np.arange(1, len(block)))[:, None]])
-            away = np.flatnonzero(np.max(np.abs(block - means), axis=1) > self._operating_allowance(means))
+            away = np.flatnonzero(self._away(block, means))
             if not len(away):
                 total, count, k = sums[-1], count + len(block), k + len(block)
                 continue
@@ -274,12 +277,16 @@ class DecisionMaker:
         self._operating_point = (total, count)
         return changes
 
-    def _operating_allowance(self, means):
-        """How far [rad/s] a speed may be from the operating point's mean speeds ``means`` (..., n)
-        and still be at it (see :meth:`operating_point_changes`), (...)."""
-        s = self.settings
-        return (np.maximum(s.shift_operating_range * np.max(np.abs(means), axis=-1), s.stuck_speed)
-                + SPEED_NOISE_SIGMAS * s.speed_sigma)
+    def _away(self, points, means):
+        """Whether operating points ``points`` (..., n + 1: the speeds [rad/s], the load factor)
+        are away from the means ``means`` (..., n + 1) (see :meth:`operating_point_changes`),
+        (...)."""
+        s, n = self.settings, self.n
+        speeds = means[..., :n]
+        allowance = (np.maximum(s.shift_operating_range * np.max(np.abs(speeds), axis=-1), s.stuck_speed)
+                     + SPEED_NOISE_SIGMAS * s.speed_sigma)
+        return ((np.max(np.abs(points[..., :n] - speeds), axis=-1) > allowance)
+                | (np.abs(points[..., n] - means[..., n]) > s.shift_operating_range * means[..., n]))
 
     def sample_weights(self, stamps: np.ndarray) -> np.ndarray:
         """The evidence weight of each row at ``stamps`` (N,) [s]: ``min(1, dt / evidence_interval)``
@@ -702,7 +709,7 @@ class DecisionMaker:
         alarm = self._alarms(judged, self._excited(batch.velocity, batch.torque), batch.stamp,
                              batch.values['torque'], batch.bounds['torque'], batch.torque_scale,
                              self._breaking_away(batch.velocity, batch.stamp),
-                             self.operating_point_changes(batch.velocity))
+                             self.operating_point_changes(batch.velocity, batch.load_factor))
         capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen, batch.silent))
         frozen = self.settings.frozen_samples
         load_events = (self._load_events(batch.stamp, batch.load_factor)
@@ -842,7 +849,7 @@ class DecisionMaker:
         self._typical_bound = ExponentialAverage(self.n)
         self._last_stamp = np.nan
         self._rest_stamp = NEVER
-        self._operating_point = (np.zeros(self.n), 0)
+        self._operating_point = (np.zeros(self.n + 1), 0)
         self._below[:] = 0
         self.alarm[:] = False
         self._rise[:] = NEVER
