@@ -50,6 +50,11 @@ def test_prediction_vector_round_trip_is_exact():
     np.testing.assert_array_equal(again.explained, prediction.explained)
     with pytest.raises(ValueError, match='lacks from_currents_fl'):
         Prediction.from_labelled(1.5, labels[1:], values[1:], names, signs)
+    # an observer from before commanded_latest: the command in force stands in for it
+    older = [i for i, label in enumerate(labels) if not label.startswith('commanded_latest_')]
+    before = Prediction.from_labelled(1.5, [labels[i] for i in older], values[older], names, signs)
+    np.testing.assert_array_equal(before.commanded_latest, prediction.commanded)
+    np.testing.assert_array_equal(before.explained, prediction.explained)
     assert np.any(values[:4] != prediction.from_currents)  # published in driver convention
 
 

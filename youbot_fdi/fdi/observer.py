@@ -71,6 +71,10 @@ SCAN_WINDOW = 64
 #: Per-wheel fields of a prediction, in labelled-vector order (see Prediction.to_labelled).
 WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
                 'commanded_before', 'commanded_latest', 'explained', 'friction', 'unseen_friction')
+#: Per-wheel fields added to the published prediction since the first release, and the field
+#: each takes from an observer that does not publish it (a robot whose nodes are updated one at a
+#: time): without the latest command sent, the command in force.
+FIELDS_ADDED = {'commanded_latest': 'commanded'}
 #: Scalar fields of a prediction, after the per-wheel ones.
 SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor', 'outside_calibration', 'resynced')
 
@@ -156,12 +160,18 @@ class Prediction:
     def from_labelled(cls, stamp: float, labels: Sequence[str], values: np.ndarray,
                       wheel_names: Sequence[str], signs: np.ndarray) -> Prediction:
         """Rebuild a prediction from :meth:`labels` and :meth:`to_vector` (matched by label);
-        ValueError naming the first missing label."""
+        ValueError naming the first missing label. A field added since (``FIELDS_ADDED``) that
+        an older observer does not publish takes the field it stands in for."""
         wanted = cls.labels(wheel_names)
         if list(labels) == wanted:  # as published: no look-up
             picked = np.asarray(values, dtype=float)
         else:
             index = {label: i for i, label in enumerate(labels)}
+            suffixes = [wheel_suffix(w) for w in wheel_names]
+            for field, stand_in in FIELDS_ADDED.items():
+                for suffix in suffixes:
+                    if f'{field}_{suffix}' not in index and f'{stand_in}_{suffix}' in index:
+                        index[f'{field}_{suffix}'] = index[f'{stand_in}_{suffix}']
             missing = [label for label in wanted if label not in index]
             if missing:
                 msg = f'prediction lacks {missing[0]}'
