@@ -416,6 +416,13 @@ def simulate_from_commands(model, arrays, input_delay=0.0, batch=None, command_t
     return predicted
 
 
+def command_speed_error(model, arrays, input_delay, command_timeout=WATCHDOG):
+    """Mean squared difference [(rad/s)²] of the measured speeds and those the command path
+    predicts (:func:`simulate_from_commands`): what the delay and gain searches minimise."""
+    predicted = simulate_from_commands(model, arrays, input_delay, command_timeout=command_timeout)
+    return float(np.mean((arrays.velocity - predicted) ** 2))
+
+
 def _effort_error(model, arrays, input_delay, command_timeout=WATCHDOG):
     """Mean squared difference [(N·m)²] of measured and commanded effort (current mode), the
     commands acting ``input_delay`` [s] after their stamps, held ``command_timeout`` [s]."""
@@ -467,8 +474,7 @@ def fit_input_delay(model, arrays, delays, near=None, command_timeout=WATCHDOG):
     kinds = {c.kind for c in arrays.commands}
     if 'velocity' in kinds:
         def error(d):
-            predicted = simulate_from_commands(model, arrays, d, command_timeout=command_timeout)
-            return float(np.mean((arrays.velocity - predicted) ** 2))
+            return command_speed_error(model, arrays, d, command_timeout)
     elif 'effort' in kinds:
         def error(d):
             return _effort_error(model, arrays, d, command_timeout)
@@ -571,8 +577,7 @@ def fit_firmware_gains(model, arrays, input_delay=0.0, command_timeout=WATCHDOG)
         kp, ki = np.exp(log_gains)
         trial = PlatformModel(replace(model.profile, firmware=replace(model.firmware, velocity_kp=kp,
                                                                       velocity_ki=ki)))
-        predicted = simulate_from_commands(trial, arrays, input_delay, command_timeout=command_timeout)
-        return float(np.mean((arrays.velocity - predicted) ** 2))
+        return command_speed_error(trial, arrays, input_delay, command_timeout)
 
     # The simplex spans GAIN_SEARCH_STEP of each log gain (scipy's default, 5 % of each
     # coordinate, is a fraction of a per cent of kp near log 1 and tens of per cent of ki);

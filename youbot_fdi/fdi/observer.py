@@ -462,7 +462,8 @@ class ModelObserver:
             pick = np.maximum(index, 0)
             velocity_mode, values = known.velocity_mode[pick], known.values[pick]
             newest = np.searchsorted(known.stamp, stamp, side='right') - 1
-            newer = (newest > index) & (known.velocity_mode[np.maximum(newest, 0)] == velocity_mode)
+            newest_pick = np.maximum(newest, 0)
+            newer = (newest > index) & (known.velocity_mode[newest_pick] == velocity_mode)
         else:
             velocity_mode, values = np.ones(len(stamp), dtype=bool), np.zeros((len(stamp), self.n))
             newer = np.zeros(len(stamp), dtype=bool)
@@ -471,8 +472,7 @@ class ModelObserver:
         self._known_commands = known if first_kept == 0 else CommandBatch(
             known.stamp[first_kept:], known.velocity_mode[first_kept:], known.values[first_kept:])
         target = np.where(expired[:, None], 0.0, values)
-        latest = (np.where(newer[:, None], known.values[np.maximum(newest, 0)], target) if newer.any()
-                  else target)
+        latest = np.where(newer[:, None], known.values[newest_pick], target) if newer.any() else target
         return velocity_mode | expired, target, latest
 
     # ------------------------------------------------------------------ state

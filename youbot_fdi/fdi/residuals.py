@@ -727,9 +727,10 @@ class ResidualEvaluator:
             load, step)
         observer_f = self._observer_features(p.from_currents)
         # A wheel's command-path prediction settles (settle_time; current mode: startup_time)
-        # after it started from a guessed state: a restart, or the measured state taken where its current reached what
-        # calibration never saw (observer.py: the integral the measured current implies is only
-        # a guess where the current limit acts, and the loop winds up unseen).
+        # after it started from a guessed state: a restart, or the measured state taken where its
+        # current reached what calibration never saw (observer.py: the integral the measured
+        # current implies is only a guess where the current limit acts, and the loop winds up
+        # unseen).
         started = last_true_value(restart[:, None] | mask_wheels(p.resynced, n), stamp, self._started)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
