@@ -1,4 +1,5 @@
 """Mass matrix against the report's closed form; exact discretisation against scipy and closed forms."""
+import math
 import numpy as np
 import pytest
 import scipy.signal
@@ -267,3 +268,72 @@ def test_stated_deviation_grows_where_the_recording_disagrees_with_itself():
         assert stated >= changed.info['uncertainty_noise'][f'viscous_friction[{j}]']
         assert stated > 50.0 * consistent
         assert abs(value - 0.0525) <= 2.0 * stated
+
+
+def test_roller_drag_torque_matches_the_hand_derived_contact_geometry():
+    """A mecanum wheel (roller angle gamma = +-45 deg) driven sideways at v_y: n . v_c = r
+    theta_dot sin(gamma) gives theta_dot = -v/r (gamma = 45 deg, the front left) or +v/r (-45 deg,
+    the front right), and the rim's motion left for the rollers, v_c - r theta_dot h, is (v, v) or
+    (-v, v): a slide u = +sqrt(2) v or -sqrt(2) v along s = (cos gamma, sin gamma). The floor holds
+    the roller back along s, and its part along the rolling direction turns the wheel: the torque
+    the motor feels is -D_r cos(gamma) tanh(u / (r v_s)). Driving straight ahead the rollers do not
+    turn (u = 0): no drag. Omni wheels (gamma = 90 deg) never feel it."""
+    from dataclasses import replace
+    from youbot_fdi.model.dynamics import WheelDynamics
+    model = load_model('youbot')
+    drag = 0.08  # [N·m]
+    dynamics = WheelDynamics(model.kinematics, replace(model.dynamics.parameters, roller_drag=drag))
+    scale = dynamics.parameters.coulomb_velocity_scale
+    for v in (0.0005, 0.01, 0.3):  # [m/s]: within the tanh's width and far beyond it
+        speeds = model.kinematics.inverse(np.array([0.0, v, 0.0]))
+        torque = dynamics.roller_drag_torque(speeds)
+        for j, wheel in enumerate(model.kinematics.platform.wheels):
+            slide = math.copysign(math.sqrt(2.0) * v, wheel.roller_angle) / wheel.radius
+            expected = -drag * math.cos(wheel.roller_angle) * math.tanh(slide / scale)
+            assert torque[j] == pytest.approx(expected, rel=1e-9, abs=1e-15)
+    ahead = model.kinematics.inverse(np.array([0.4, 0.0, 0.0]))
+    assert np.allclose(dynamics.roller_drag_torque(ahead), 0.0, atol=1e-12)
+    # the torque the motors feel includes it
+    sideways = model.kinematics.inverse(np.array([0.0, 0.3, 0.0]))
+    assert np.allclose(dynamics.coulomb_torque(sideways) - model.dynamics.coulomb_torque(sideways),
+                       dynamics.roller_drag_torque(sideways))
+    omni = load_model('robotino')
+    omni_dynamics = WheelDynamics(omni.kinematics, replace(omni.dynamics.parameters, roller_drag=drag))
+    assert not omni_dynamics.has_drag
+    assert np.all(omni_dynamics.roller_drag_torque(omni.kinematics.inverse(np.array([0.0, 0.3, 0.0]))) == 0.0)
+
+
+def test_identify_finds_the_rollers_drag_and_the_viscous_friction_it_would_bias():
+    """Torques with a roller drag (one D_r for the base) on a drive in changing directions: the
+    fit asked to (``fit_roller_drag``) finds D_r and the per-wheel viscous friction within their stated intervals (three
+    standard deviations); without the drag column the viscous friction would absorb it (the
+    drag grows with the slide, and the slide with the speeds)."""
+    from dataclasses import replace
+    from youbot_fdi.fdi.identify import RecordingArrays, fit_dynamics
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model.dynamics import WheelDynamics
+    model = load_model('youbot')
+    truth = replace(model.dynamics.parameters, roller_drag=0.06)
+    dynamics = WheelDynamics(model.kinematics, truth)
+    dt = 0.01
+    time = np.arange(0.0, 30.0, dt)
+    body = np.column_stack([0.3 * np.sin(0.9 * time), 0.3 * np.sin(0.7 * time + 1.0),
+                            1.0 * np.sin(1.3 * time)])
+    speeds = body @ model.kinematics.jacobian.T
+    acceleration = np.gradient(speeds, dt, axis=0)
+    torque = (acceleration @ dynamics.mass_matrix.T + speeds @ dynamics.friction_matrix.T
+              + dynamics.coulomb_torque(speeds))
+    torque = torque + np.random.default_rng(5).normal(0.0, 0.01, torque.shape)
+    arrays = RecordingArrays(time, np.cumsum(speeds, axis=0) * dt, speeds, torque, [])
+    fit = fit_dynamics(arrays, model, FdiSettings(fit_roller_drag=True))
+    found, sd = fit.parameters, fit.info['uncertainty']
+    assert 'roller_drag' not in fit.info['unexcited']
+    assert abs(found.roller_drag - truth.roller_drag) <= 3.0 * sd['roller_drag']
+    assert found.roller_drag == pytest.approx(truth.roller_drag, rel=0.1)
+    for j in range(model.dynamics.n_wheels):
+        assert abs(found.viscous_friction[j] - truth.viscous_friction[j]) <= 3.0 * sd[f'viscous_friction[{j}]']
+    # not fitted (the default): held at the prior's value, and the viscous friction absorbs it
+    held = fit_dynamics(arrays, model, FdiSettings()).parameters
+    assert held.roller_drag == model.dynamics.parameters.roller_drag == 0.0
+    assert max(abs(v - t) for v, t in zip(held.viscous_friction, truth.viscous_friction)) > \
+        max(abs(v - t) for v, t in zip(found.viscous_friction, truth.viscous_friction))

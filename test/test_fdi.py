@@ -181,6 +181,25 @@ def test_data_gap_is_comm_loss_of_the_base(tmp_path, model):
     assert events[1].stamp == pytest.approx(101.49 + settings.heal_time, abs=0.011)  # its row
 
 
+def test_identify_fits_the_rollers_drag_when_asked_and_finds_none_where_there_is_none(recordings, tmp_path,
+                                                                                    capsys):
+    """The virtual base's plant has no roller drag: asked to fit it (``--roller-drag``), identify
+    states it with its deviation, near 0 (within three of them), and writes it; by default it is
+    not fitted and the profile's 0 stays."""
+    params = tmp_path / 'params.yaml'
+    assert main(['identify', str(recordings['nominal'].path), '--output', str(params), '--no-gains',
+                 '--roller-drag']) == 0
+    out = capsys.readouterr().out
+    assert "rollers' drag the motors feel" in out and 'not fitted' not in out
+    profile = load_profile(params)
+    sd = profile.identification['uncertainty']['roller_drag']
+    assert 0.0 <= profile.dynamics.roller_drag <= 3.0 * sd
+    np.testing.assert_allclose(profile.dynamics.viscous_friction, 0.035, rtol=0.05)
+    assert main(['identify', str(recordings['nominal'].path), '--output', str(params), '--no-gains']) == 0
+    assert "rollers' drag" not in capsys.readouterr().out
+    assert load_profile(params).dynamics.roller_drag == 0.0
+
+
 def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp_path, capsys):
     params = tmp_path / 'params.yaml'
     assert main(['identify', str(recordings['nominal'].path), '--output', str(params), '--no-gains',

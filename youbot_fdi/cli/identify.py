@@ -41,11 +41,18 @@ def add_parser(subparsers):
                         help='do not learn corrections of the physics (the direction-dependent '
                              'friction and the inertia the model misses); bounds from the physics '
                              'residuals alone')
+    parser.add_argument('--roller-drag', action='store_true',
+                        help='also fit the torque mecanum rollers pass to the motors while the base '
+                             'moves sideways (roller_drag [N·m]; fit_roller_drag in config/fdi.yaml). '
+                             'A closer fit, but tighter learned bounds: see docs/fdi.md before '
+                             'using it on floors calibration did not cover')
     parser.add_argument('--plot', metavar='FILE', help='write the friction sweep (Fig. 5.10) here')
     parser.set_defaults(run=run)
 
 
 def run(args):
+    from dataclasses import replace
+
     import numpy as np
 
     from youbot_fdi.app.recordings import identify_recording
@@ -53,6 +60,8 @@ def run(args):
     from youbot_fdi.model.profile import load_model, save_profile
     from youbot_fdi.settings import load_settings
     settings = load_settings(FdiSettings, 'fdi')
+    if args.roller_drag:
+        settings = replace(settings, fit_roller_drag=True)
     result = identify_recording(args.bag, load_model(args.profile), settings,
                                 fit_gains=not args.no_gains, learn=not args.physics_only)
     profile = result.profile
@@ -78,6 +87,9 @@ def run(args):
           + (f'; contact law, roller friction ratio {dyn.roller_friction_ratio:g}, calibrated down to a '
              f'rolling share of {result.fdi.get("contact_share_floor", 0.0):.2f}'
              if dyn.roller_friction_ratio > 0 else '; per wheel (no contact law)'))
+    if 'roller_drag' in sd or dyn.roller_drag > 0:
+        print(f'  rollers\' drag the motors feel [N·m]: {value("roller_drag", dyn.roller_drag, ".4f")}'
+              + ('' if 'roller_drag' in sd else ' (the profile\'s, not fitted: fit_roller_drag)'))
     unexcited = result.info.get('unexcited')
     if unexcited:
         print(f'  not excited by this recording (the data narrow them to no less than '

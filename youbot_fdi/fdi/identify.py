@@ -185,14 +185,22 @@ def fit_dynamics(arrays, model, settings=None):
     forward = model.kinematics.forward_matrix
     p_xy = forward.T @ np.diag([1.0, 1.0, 0.0]) @ forward
     p_z = forward.T @ np.diag([0.0, 0.0, 1.0]) @ forward
-    sign = np.tanh(speed / model.dynamics.parameters.coulomb_velocity_scale)
+    scale = model.dynamics.parameters.coulomb_velocity_scale
+    sign = np.tanh(speed / scale)
     slide = model.kinematics.roller_slide(speed)
+    # the rollers' drag per unit D_r (WheelDynamics.roller_drag_torque): one column for the
+    # base where it is fitted, else the prior's drag is known torque
+    drag = model.dynamics.drag_projection * np.tanh(slide / scale)
+    fit_drag = settings.fit_roller_drag
+    if not fit_drag:
+        torque = torque - model.dynamics.parameters.roller_drag * drag
     friction_signs = np.sign(speed).ravel()
     inertial = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
     fits = []
     for ratio in ROLLER_RATIOS.tolist():
         coulomb = sign * rolling_share(speed, slide, ratio) if ratio > 0.0 else sign
-        design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb))
+        design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb)
+                                 + ([drag.ravel()] if fit_drag else []))
         params, info, fitted, error = _fit_signed(design, torque, friction_signs, model, settings)
         fits.append((error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted))
     physics = fits[0]
@@ -229,21 +237,26 @@ def _fit_signed(design, torque, friction_signs, model, settings):
     return params, info, fitted, float(np.sum((target - fitted) ** 2))
 
 
-def parameter_names(n):
-    """The names of the dynamics fit's parameters, in its column order, for ``n`` wheels."""
+def parameter_names(n, roller_drag=False):
+    """The names of the dynamics fit's parameters, in its column order, for ``n`` wheels (and the
+    rollers' drag where it is fitted)."""
     return ['mass', 'yaw_inertia', 'wheel_inertia', *(f'viscous_friction[{j}]' for j in range(n)),
-            *(f'coulomb_friction[{j}]' for j in range(n))]
+            *(f'coulomb_friction[{j}]' for j in range(n)), *(['roller_drag'] if roller_drag else [])]
 
 
 def prior_spread(prior, settings, n):
     """The prior's values and standard deviations in the fit's column order: each parameter
     ``prior_inertia_sd`` (mass, inertias) or ``prior_friction_sd`` (friction) times its prior
     value (a friction prior of 0 takes its family's largest, or 1: no knowledge)."""
+    drag = [prior.roller_drag] if settings.fit_roller_drag else []
     values = np.array([prior.mass, prior.yaw_inertia, float(np.mean(prior.wheel_inertia)),
-                       *prior.viscous_friction, *prior.coulomb_friction], dtype=float)
-    relative = np.array([settings.prior_inertia_sd] * 3 + [settings.prior_friction_sd] * 2 * n)
+                       *prior.viscous_friction, *prior.coulomb_friction, *drag], dtype=float)
+    relative = np.array([settings.prior_inertia_sd] * 3
+                        + [settings.prior_friction_sd] * (2 * n + len(drag)))
     scale = np.abs(values)
-    for family in (slice(3, 3 + n), slice(3 + n, 3 + 2 * n)):
+    # the rollers' drag is a Coulomb-like contact torque: a prior of 0 takes the Coulomb family's
+    coulomb = slice(3 + n, None)
+    for family in (slice(3, 3 + n), coulomb):
         scale[family] = np.where(scale[family] > 0.0, scale[family], scale[family].max() or 1.0)
     return values, relative * np.where(scale > 0.0, scale, 1.0)
 
@@ -340,7 +353,7 @@ def _solve_dynamics(design, target, model, n, settings):
     # conditioned where the unscaled information matrix spans thirty decades.
     scaled_covariance = noise ** 2 * np.linalg.pinv(normal, hermitian=True)
     posterior = np.sqrt(np.clip(np.diag(scaled_covariance), 0.0, None)) / column_scale
-    names = parameter_names(n)
+    names = parameter_names(n, settings.fit_roller_drag)
     # Excitation is what the data can tell (the posterior); the stated deviation is at least
     # what the recording's parts disagree by, too (a model that misses, not noise).
     unexcited = [name for name, sd, wide in zip(names, posterior, spread)
@@ -350,7 +363,9 @@ def _solve_dynamics(design, target, model, n, settings):
     params = replace(prior, mass=float(solution[0]), yaw_inertia=float(solution[1]),
                      wheel_inertia=(float(solution[2]),) * n,
                      viscous_friction=tuple(float(v) for v in solution[3:3 + n]),
-                     coulomb_friction=tuple(float(v) for v in solution[3 + n:3 + 2 * n]))
+                     coulomb_friction=tuple(float(v) for v in solution[3 + n:3 + 2 * n]),
+                     roller_drag=(float(solution[3 + 2 * n]) if settings.fit_roller_drag
+                                  else prior.roller_drag))
     info = {'torque_fit_r_squared': float(r_squared),
             'uncertainty': {name: float(sd) for name, sd in zip(names, deviation)},
             'uncertainty_noise': {name: float(sd) for name, sd in zip(names, posterior)},

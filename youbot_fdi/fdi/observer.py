@@ -272,7 +272,7 @@ class ModelObserver:
         self.max_torque = drive.max_torque  # [N·m] at the wheel
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
-        self._has_coulomb = bool(np.any(dyn.coulomb > 0))
+        self._has_coulomb = bool(np.any(dyn.coulomb > 0)) or dyn.has_drag
         learned = (model.profile.learned or {}).get('torque')
         #: the learned torque correction (youbot_fdi.fdi.learned), None: physics only
         self.correction = (None if learned is None or settings.physics_only else replace(
@@ -337,10 +337,12 @@ class ModelObserver:
         # neither the wheel's own friction law nor the contact law holds it, and it grows with
         # the floor and the wheel's load, which calibration saw at one value each.
         glide = np.abs(dyn.coulomb_level(dyn.kinematics.roller_slide(velocity)))
+        # The rollers' drag (identified) is contact friction: the load condition scales it too.
+        drag = dyn.roller_drag_torque(velocity)
         if not dyn.contact_law:
-            return level, level, glide
+            return level + drag, level + drag, glide
         share = dyn.rolling_shares(velocity)
-        return (level * share, level,
+        return (level * share + drag, level + drag,
                 glide + np.abs(level) * np.maximum(0.0, self.settings.contact_share_floor - share))
 
     def _speed_extrapolation(self, mean_speed):

@@ -134,6 +134,9 @@ class FdiSettings:
     prior_inertia_sd: float = 0.5
     prior_friction_sd: float = 1.0
     excitation_share: float = 0.5
+    # identify: fit the rollers' drag (model/dynamics.py, roller_drag) with the friction; off:
+    # held at the prior profile's value (docs/fdi.md: why it is not on by default)
+    fit_roller_drag: bool = False
     classification_window: float = 0.5  # data used to name the fault type [s]
     # the event lifecycle (youbot_fdi/fdi/lifecycle.py): an alarm is published once it stood
     # confirm_time, OK once it has been gone heal_time; no two events of a component within dwell

@@ -43,6 +43,9 @@ class DynamicParameters:
     #: direction (the contact law, :meth:`WheelDynamics.coulomb_torque`); 0: per-wheel Coulomb
     #: friction (the report's model)
     roller_friction_ratio: float = 0.0
+    #: D_r [N·m]: the torque each motor feels from its rollers' resistance to turning while the
+    #: contact glides along them (:meth:`WheelDynamics.roller_drag_torque`); 0: none
+    roller_drag: float = 0.0
 
 
 def rolling_share(speed, slide, ratio):
@@ -127,6 +130,10 @@ class WheelDynamics:
         self.mass_inverse = np.linalg.inv(self.mass_matrix)
         #: the contact law is on (``roller_friction_ratio`` > 0)
         self.contact_law = parameters.roller_friction_ratio > 0.0
+        #: each wheel's share (n,) of its rollers' resistance the motor feels, -cos(roller angle):
+        #: none for an omni wheel (rollers across the rolling direction), 0.71 for a mecanum one
+        self.drag_projection = -np.cos([wheel.roller_angle for wheel in kinematics.platform.wheels])
+        self.has_drag = parameters.roller_drag > 0.0 and bool(np.any(np.abs(self.drag_projection) > 1e-12))
 
     def state_space(self, friction_matrix=None):
         """Continuous state space of eq. 3.22.
@@ -160,7 +167,26 @@ class WheelDynamics:
         speed alone. A wheel turning slowly while its contact slides sideways needs only part of
         its Coulomb torque (the Robotino's currents follow this at every speed; docs/fdi.md).
         """
-        return self.contact_share(velocity, self.coulomb_level(velocity))
+        return self.contact_share(velocity, self.coulomb_level(velocity)) + self.roller_drag_torque(velocity)
+
+    def roller_drag_torque(self, velocity):
+        """The torque [N·m] (..., n) the motors feel from the rollers' resistance to turning at
+        wheel speeds ``velocity`` [rad/s]::
+
+            -D_r cos(gamma) tanh(u / v_s)
+
+        u the contact's slide along its rollers (:meth:`Kinematics.roller_slide`), gamma the
+        roller angle, D_r ``roller_drag``. The floor holds a gliding roller back along its free
+        direction; a mecanum roller's free direction has a part along the wheel's rolling
+        direction, and the force there turns the wheel (it helps or brakes the motor with the
+        direction the base moves, not with the wheel's own speed). It grows with the floor and
+        the load, as the other contact friction does. 0 for an omni wheel."""
+        velocity = np.asarray(velocity, dtype=float)
+        if not self.has_drag:
+            return np.zeros_like(velocity)
+        slide = self.kinematics.roller_slide(velocity)
+        return (self.parameters.roller_drag * self.drag_projection
+                * np.tanh(slide / self.parameters.coulomb_velocity_scale))
 
     def coulomb_level(self, velocity):
         """The wheels' Coulomb friction torque as if their contacts only rolled, ``F_c tanh(w /
@@ -237,7 +263,10 @@ class DiscreteWheelModel:
         a_matrix, b_matrix = dynamics.state_space()
         self.a_d, self.b_d = zoh_discretize(a_matrix, b_matrix, self.dt)
         self.n_wheels = n
-        coulomb_slope = np.max(dynamics.coulomb, initial=0.0) / dynamics.parameters.coulomb_velocity_scale
+        # the rollers' drag is held the same way; a roller slides at most about as fast as its
+        # wheel turns (Kinematics.roller_slide), so its slope adds at most D_r / v_s
+        coulomb_slope = ((np.max(dynamics.coulomb, initial=0.0) + dynamics.parameters.roller_drag)
+                         / dynamics.parameters.coulomb_velocity_scale)
         smallest_inertia = np.linalg.eigvalsh(dynamics.mass_matrix)[0]
         if self.dt * coulomb_slope / smallest_inertia > COULOMB_STABILITY_LIMIT:
             msg = (f'Coulomb friction {np.max(dynamics.coulomb):g} N·m over a smoothing width of '

@@ -26,6 +26,7 @@ Schema (units in brackets)::
       coulomb_friction: [N·m]             # scalar or list, optional (0)
       coulomb_velocity_scale: [rad/s]     # optional (0.05)
       roller_friction_ratio: [-]          # optional (0): contact friction law, identify fits it
+      roller_drag: [N·m]                  # optional (0): rollers' resistance the motors feel, identify fits it
     firmware:
       period: [s]
       velocity_kp: [A/(rad/s)]
@@ -207,7 +208,8 @@ def _parse_dynamics(section, n_wheels):
         coulomb_friction=section.per_wheel('coulomb_friction', n_wheels, minimum=0.0, default=0.0),
         coulomb_velocity_scale=section.number('coulomb_velocity_scale', minimum=0.0, strict=True,
                                               default=DEFAULT_COULOMB_VELOCITY_SCALE),
-        roller_friction_ratio=section.number('roller_friction_ratio', minimum=0.0, default=0.0))
+        roller_friction_ratio=section.number('roller_friction_ratio', minimum=0.0, default=0.0),
+        roller_drag=section.number('roller_drag', minimum=0.0, default=0.0))
     section.finish()
     return dynamics
 
@@ -317,7 +319,8 @@ def profile_to_dict(profile):
                      'viscous_friction': [float(v) for v in dyn.viscous_friction],
                      'coulomb_friction': [float(v) for v in dyn.coulomb_friction],
                      'coulomb_velocity_scale': dyn.coulomb_velocity_scale,
-                     'roller_friction_ratio': dyn.roller_friction_ratio},
+                     'roller_friction_ratio': dyn.roller_friction_ratio,
+                     'roller_drag': dyn.roller_drag},
         'firmware': {'period': profile.firmware.period,
                      'velocity_kp': profile.firmware.velocity_kp,
                      'velocity_ki': profile.firmware.velocity_ki,
