@@ -482,6 +482,9 @@ class DecisionMaker:
         s = self.settings
         level = SHARED_SHARE  # of the threshold
         up = evidence >= level
+        if not up.any():  # nothing shared (nearly every live row): no rise, nothing to compare
+            self._pass['rise'] = np.broadcast_to(self._rise[SHARED_FAMILIES], up.shape).copy()
+            return up
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
         rise = np.maximum(np.maximum.accumulate(rise, axis=0), self._rise[SHARED_FAMILIES])
