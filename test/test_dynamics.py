@@ -332,8 +332,15 @@ def test_identify_finds_the_rollers_drag_and_the_viscous_friction_it_would_bias(
     assert found.roller_drag == pytest.approx(truth.roller_drag, rel=0.1)
     for j in range(model.dynamics.n_wheels):
         assert abs(found.viscous_friction[j] - truth.viscous_friction[j]) <= 3.0 * sd[f'viscous_friction[{j}]']
-    # not fitted (the default): held at the prior's value, and the viscous friction absorbs it
+    # not fitted (the default): held at the prior's value; a prior without it leaves the
+    # viscous friction to absorb it, a prior with the true drag takes it as known torque
     held = fit_dynamics(arrays, model, FdiSettings()).parameters
     assert held.roller_drag == model.dynamics.parameters.roller_drag == 0.0
     assert max(abs(v - t) for v, t in zip(held.viscous_friction, truth.viscous_friction)) > \
         max(abs(v - t) for v, t in zip(found.viscous_friction, truth.viscous_friction))
+    from youbot_fdi.model.profile import PlatformModel
+    informed = fit_dynamics(arrays, PlatformModel(replace(model.profile, dynamics=truth)), FdiSettings())
+    assert informed.parameters.roller_drag == truth.roller_drag
+    for j in range(model.dynamics.n_wheels):
+        assert abs(informed.parameters.viscous_friction[j] - truth.viscous_friction[j]) <= \
+            3.0 * informed.info['uncertainty'][f'viscous_friction[{j}]']

@@ -190,18 +190,17 @@ def fit_dynamics(arrays, model, settings=None):
     slide = model.kinematics.roller_slide(speed)
     # the rollers' drag per unit D_r (WheelDynamics.roller_drag_torque): one column for the
     # base where it is fitted, else the prior's drag is known torque
-    drag = model.dynamics.drag_projection * np.tanh(slide / scale)
+    drag = (model.dynamics.drag_projection * np.tanh(slide / scale)).ravel()
     fit_drag = settings.fit_roller_drag
-    if not fit_drag:
-        torque = torque - model.dynamics.parameters.roller_drag * drag
+    known = 0.0 if fit_drag else model.dynamics.parameters.roller_drag * drag
     friction_signs = np.sign(speed).ravel()
     inertial = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
     fits = []
     for ratio in ROLLER_RATIOS.tolist():
         coulomb = sign * rolling_share(speed, slide, ratio) if ratio > 0.0 else sign
         design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb)
-                                 + ([drag.ravel()] if fit_drag else []))
-        params, info, fitted, error = _fit_signed(design, torque, friction_signs, model, settings)
+                                 + ([drag] if fit_drag else []))
+        params, info, fitted, error = _fit_signed(design, torque, friction_signs, model, settings, known)
         fits.append((error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted))
     physics = fits[0]
     best = min(fits, key=lambda fit: fit[0])
@@ -220,20 +219,21 @@ def _per_wheel_columns(law):
     return out
 
 
-def _fit_signed(design, torque, friction_signs, model, settings):
-    """:func:`_solve_dynamics` of ``torque`` (k, n); a magnitude-only effort is signed by the
-    friction first (``friction_signs``, the speeds' signs, raveled), then by each fit's explained
-    torque. Returns (params, info, fitted, squared error)."""
+def _fit_signed(design, torque, friction_signs, model, settings, known=0.0):
+    """:func:`_solve_dynamics` of ``torque`` (k, n) less the ``known`` torque (raveled, or 0: a
+    term held at its prior value); a magnitude-only effort is signed by the friction first
+    (``friction_signs``, the speeds' signs, raveled), then by each fit's explained torque.
+    Returns (params, info, fitted, squared error)."""
     n = torque.shape[1]
     if model.drive.signed_effort:
-        target = torque.ravel()
+        target = torque.ravel() - known
         params, info, fitted = _solve_dynamics(design, target, model, n, settings)
     else:
         signs = friction_signs
         for _ in range(SIGN_REFITS):
-            target = np.abs(torque).ravel() * signs
+            target = np.abs(torque).ravel() * signs - known
             params, info, fitted = _solve_dynamics(design, target, model, n, settings)
-            signs = np.sign(fitted)
+            signs = np.sign(fitted + known)
     return params, info, fitted, float(np.sum((target - fitted) ** 2))
 
 

@@ -27,6 +27,9 @@ from youbot_fdi.errors import ModelError
 
 #: Explicitly held Coulomb friction is stable while dt * (F_c / v_scale) / lambda_min(M) stays below this.
 COULOMB_STABILITY_LIMIT = 1.0
+#: |cos(roller angle)| below this: the rollers run across the rolling direction (an omni wheel;
+#: cos 90° is 6e-17 in floating point) and the motor feels none of their drag.
+ACROSS_ROLLING = 1e-12
 
 
 @dataclass(frozen=True)
@@ -131,9 +134,12 @@ class WheelDynamics:
         #: the contact law is on (``roller_friction_ratio`` > 0)
         self.contact_law = parameters.roller_friction_ratio > 0.0
         #: each wheel's share (n,) of its rollers' resistance the motor feels, -cos(roller angle):
-        #: none for an omni wheel (rollers across the rolling direction), 0.71 for a mecanum one
+        #: none for an omni wheel (rollers across the rolling direction), 0.71 in size for a
+        #: mecanum one
         self.drag_projection = -np.cos([wheel.roller_angle for wheel in kinematics.platform.wheels])
-        self.has_drag = parameters.roller_drag > 0.0 and bool(np.any(np.abs(self.drag_projection) > 1e-12))
+        #: the rollers' drag acts (``roller_drag`` > 0 on wheels whose motors feel it)
+        self.has_drag = (parameters.roller_drag > 0.0
+                         and bool(np.any(np.abs(self.drag_projection) > ACROSS_ROLLING)))
 
     def state_space(self, friction_matrix=None):
         """Continuous state space of eq. 3.22.
@@ -265,7 +271,8 @@ class DiscreteWheelModel:
         self.n_wheels = n
         # the rollers' drag is held the same way; a roller slides at most about as fast as its
         # wheel turns (Kinematics.roller_slide), so its slope adds at most D_r / v_s
-        coulomb_slope = ((np.max(dynamics.coulomb, initial=0.0) + dynamics.parameters.roller_drag)
+        drag = dynamics.parameters.roller_drag if dynamics.has_drag else 0.0
+        coulomb_slope = ((np.max(dynamics.coulomb, initial=0.0) + drag)
                          / dynamics.parameters.coulomb_velocity_scale)
         smallest_inertia = np.linalg.eigvalsh(dynamics.mass_matrix)[0]
         if self.dt * coulomb_slope / smallest_inertia > COULOMB_STABILITY_LIMIT:
