@@ -377,6 +377,32 @@ def test_the_contact_law_explains_real_omni_wheel_currents_better(tmp_path, monk
     assert 0.2 < floor < 0.9 and no_floor == 0.0
 
 
+def test_the_observer_explains_the_rollers_drag_of_a_sideways_drive(model):
+    """Driving sideways at a steady speed, each wheel needs its viscous and Coulomb friction and
+    the rollers' drag, which brakes one diagonal and helps the other: the observer's explained
+    torque is exactly that (the exact discretisation's ``Gamma^-1 (I - Phi) = D`` at a steady
+    speed), and a measured torque equal to it leaves no torque residual."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    from youbot_fdi.model.profile import PlatformModel
+    from youbot_fdi.samples import JointBatch
+    dragging = PlatformModel(replace(model.profile, dynamics=replace(model.dynamics.parameters,
+                                                                   roller_drag=0.05)))
+    dynamics, signs = dragging.dynamics, dragging.kinematics.drive_signs
+    speeds = dragging.kinematics.inverse(np.array([0.0, 0.3, 0.0]))  # kinematic convention
+    drag = dynamics.roller_drag_torque(speeds)
+    assert np.all(np.abs(drag) > 0.03) and drag.min() < 0.0 < drag.max()  # brakes some, helps others
+    steady = speeds @ dynamics.friction_matrix.T + dynamics.coulomb_torque(speeds)
+    rows = 30
+    stamps = 0.01 * np.arange(rows)
+    joints = JointBatch(stamps, np.outer(stamps, signs * speeds), np.tile(signs * speeds, (rows, 1)),
+                        np.tile(signs * steady, (rows, 1)))
+    predictions = ModelObserver(dragging, FdiSettings()).update_batch(joints)
+    kept = ~predictions.restart
+    np.testing.assert_allclose(predictions.explained[kept], np.tile(steady, (kept.sum(), 1)), rtol=1e-6)
+    batch = ResidualGenerator(dragging, FdiSettings()).update_batch(joints)
+    np.testing.assert_allclose(batch.values['torque'], 0.0, atol=1e-6)
+
+
 def test_unsigned_effort_is_signed_by_the_explained_torque(model):
     """A profile whose effort is a magnitude: the generator signs it, so a braking wheel's torque
     is negative as it is physically."""
