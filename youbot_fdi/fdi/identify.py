@@ -185,12 +185,11 @@ def fit_dynamics(arrays, model, settings=None):
     forward = model.kinematics.forward_matrix
     p_xy = forward.T @ np.diag([1.0, 1.0, 0.0]) @ forward
     p_z = forward.T @ np.diag([0.0, 0.0, 1.0]) @ forward
-    scale = model.dynamics.parameters.coulomb_velocity_scale
-    sign = np.tanh(speed / scale)
+    sign = np.tanh(speed / model.dynamics.parameters.coulomb_velocity_scale)
     slide = model.kinematics.roller_slide(speed)
-    # the rollers' drag per unit D_r (WheelDynamics.roller_drag_torque): one column for the
+    # the rollers' drag per unit D_r (WheelDynamics.roller_drag_shape): one column for the
     # base where it is fitted, else the prior's drag is known torque
-    drag = (model.dynamics.drag_projection * np.tanh(slide / scale)).ravel()
+    drag = model.dynamics.roller_drag_shape(speed).ravel()
     fit_drag = settings.fit_roller_drag
     known = 0.0 if fit_drag else model.dynamics.parameters.roller_drag * drag
     friction_signs = np.sign(speed).ravel()

@@ -337,13 +337,15 @@ class ModelObserver:
         # neither the wheel's own friction law nor the contact law holds it, and it grows with
         # the floor and the wheel's load, which calibration saw at one value each.
         glide = np.abs(dyn.coulomb_level(dyn.kinematics.roller_slide(velocity)))
-        # The rollers' drag (identified) is contact friction: the load condition scales it too.
-        drag = dyn.roller_drag_torque(velocity)
-        if not dyn.contact_law:
-            return level + drag, level + drag, glide
-        share = dyn.rolling_shares(velocity)
-        return (level * share + drag, level + drag,
-                glide + np.abs(level) * np.maximum(0.0, self.settings.contact_share_floor - share))
+        felt, unseen = level, glide
+        if dyn.contact_law:
+            share = dyn.rolling_shares(velocity)
+            felt = level * share
+            unseen = glide + np.abs(level) * np.maximum(0.0, self.settings.contact_share_floor - share)
+        if dyn.has_drag:  # the rollers' drag (identified) is contact friction: the load scales it too
+            drag = dyn.roller_drag_torque(velocity)
+            felt, level = felt + drag, level + drag
+        return felt, level, unseen
 
     def _speed_extrapolation(self, mean_speed):
         """Friction [N·m] (..., n) the model may miss where the base drives faster or slower than
@@ -369,7 +371,11 @@ class ModelObserver:
             near = np.clip(speed, low, high)
             scaled = mean_speed * np.divide(near, speed, out=np.ones_like(speed), where=speed > 0.0)
             distance = np.abs(speed - near) / np.maximum(near, MIN_CALIBRATED_SPEED)
-        return np.abs(self.friction * scaled + self.model.dynamics.coulomb_level(scaled)) * distance
+        dyn = self.model.dynamics
+        level = dyn.coulomb_level(scaled)
+        if dyn.has_drag:  # the friction level the load scales, as in _coulomb
+            level = level + dyn.roller_drag_torque(scaled)
+        return np.abs(self.friction * scaled + level) * distance
 
     def _loop_step(self, steps):
         """Exact unsaturated map of ``steps`` firmware periods of the PI loop.

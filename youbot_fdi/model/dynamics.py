@@ -173,7 +173,8 @@ class WheelDynamics:
         speed alone. A wheel turning slowly while its contact slides sideways needs only part of
         its Coulomb torque (the Robotino's currents follow this at every speed; docs/fdi.md).
         """
-        return self.contact_share(velocity, self.coulomb_level(velocity)) + self.roller_drag_torque(velocity)
+        felt = self.contact_share(velocity, self.coulomb_level(velocity))
+        return felt + self.roller_drag_torque(velocity) if self.has_drag else felt
 
     def roller_drag_torque(self, velocity):
         """The torque [N·m] (..., n) the motors feel from the rollers' resistance to turning at
@@ -190,9 +191,14 @@ class WheelDynamics:
         velocity = np.asarray(velocity, dtype=float)
         if not self.has_drag:
             return np.zeros_like(velocity)
-        slide = self.kinematics.roller_slide(velocity)
-        return (self.parameters.roller_drag * self.drag_projection
-                * np.tanh(slide / self.parameters.coulomb_velocity_scale))
+        return self.parameters.roller_drag * self.roller_drag_shape(velocity)
+
+    def roller_drag_shape(self, velocity):
+        """:meth:`roller_drag_torque` per unit ``roller_drag`` [-] (..., n), ``-cos(gamma)
+        tanh(u / v_s)`` at wheel speeds ``velocity`` [rad/s], whatever ``roller_drag`` is
+        (identify fits D_r on it)."""
+        slide = self.kinematics.roller_slide(np.asarray(velocity, dtype=float))
+        return self.drag_projection * np.tanh(slide / self.parameters.coulomb_velocity_scale)
 
     def coulomb_level(self, velocity):
         """The wheels' Coulomb friction torque as if their contacts only rolled, ``F_c tanh(w /
