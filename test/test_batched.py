@@ -19,7 +19,8 @@ from youbot_fdi.app.config import build_pipeline
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.app.config import load_residual_data, residual_data_for
 from youbot_fdi.fdi.pipeline import FdiPipeline
-from youbot_fdi.fdi.recursions import (affine_recursion, bounded_cusum, cusum, last_true_value,
+from youbot_fdi.fdi.recursions import (affine_recursion, bounded_cusum, cusum, decaying_peak,
+                                      last_true_value,
                                       nan_median, run_lengths, scalar_recursion)
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
 from youbot_fdi.samples import SampleMapper
@@ -347,6 +348,31 @@ def test_smoothing_and_cusums_equal_their_loops(rows, seed):
            'held': bounded_cusum(steps, start, ceiling).reshape(rows, -1)}
     for name, rows_expected in expected.items():
         np.testing.assert_allclose(got[name], rows_expected, rtol=1e-9, atol=1e-9, err_msg=name)
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 30), size=st.integers(1, 7), seed=st.integers(0, 2**32 - 1))
+def test_a_decaying_peak_is_the_same_in_any_chunking(rows, size, seed):
+    """``y_k = max(v_k, exp(-rate dt_k) y_{k-1})`` by its loop, and the same bits in chunks of any
+    size (the state carried between them); NaN counts as nothing."""
+    rng = np.random.default_rng(seed)
+    values = np.where(rng.random((rows, 3)) < 0.4, 0.0, rng.exponential(size=(rows, 3)))
+    values[rng.random((rows, 3)) < 0.1] = np.nan
+    elapsed = np.cumsum(rng.uniform(0.001, 0.05, rows))[:, None]
+    rate = np.array([0.0, 3.0, 40.0])  # [1/s]: never forgets, slowly, quickly
+    peak, before, expected = np.zeros(3), 0.0, []
+    for k in range(rows):
+        peak = np.maximum(np.nan_to_num(values[k]), np.exp(-rate * (elapsed[k, 0] - before)) * peak)
+        before = elapsed[k, 0]
+        expected.append(peak)
+    whole, _ = decaying_peak(values, elapsed, rate, np.full(3, -np.inf))
+    np.testing.assert_allclose(whole, expected, rtol=1e-9, atol=1e-300)
+    level, parts = np.full(3, -np.inf), []
+    for start in range(0, rows, size):
+        part, levels = decaying_peak(values[start:start + size], elapsed[start:start + size], rate, level)
+        parts.append(part)
+        level = levels[-1]
+    np.testing.assert_array_equal(np.concatenate(parts), whole)
 
 
 @settings(max_examples=80, deadline=None)

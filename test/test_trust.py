@@ -15,6 +15,7 @@ from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, S
                                       PRIOR_SETTINGS, ResidualEvaluator, ResidualFrame, bound_weights)
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
+from youbot_fdi.model.firmware import slowest_time_constant
 
 
 @pytest.fixture(scope='module')
@@ -145,6 +146,45 @@ def test_bounds_beyond_the_calibrated_range_widen_with_the_prior(model):
     assert evaluator.bound('torque', within)[0] == pytest.approx(within[0] @ w)
     beyond = evaluator.beyond_calibration({'torque': np.stack([features, within], axis=0)})
     assert beyond.tolist() == [[True], [False]]
+
+
+def test_the_command_bound_remembers_an_extrapolated_transient_as_the_loop_does(model):
+    """A row whose predicted acceleration is X beyond what calibration covered widens the command
+    bound by w X (w: the larger of the learned and the default weight); the rows after it, inside
+    the range again, keep w X exp(-(t - t_0) / tau), tau the loop's slowest time constant (the
+    time a guessed start takes to fade), the same row by row; nothing while settling, nothing
+    from before a restart."""
+    learned = dict(zip(BOUND_TERMS['command'], (0.02, 0.01, 0.05, 0.004)))
+    settings = replace(FdiSettings(), command_feature_range=(math.inf, 10.0, 3.0, 5.0), **learned)
+    evaluator = ResidualEvaluator(model, settings)
+    tau = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
+    weight = max(learned['command_delay'], bound_weights(PRIOR_SETTINGS, 'command')[3])
+    rows, dt, excess = 12, 0.01, 20.0  # [rad/s²] beyond the range, on wheel 1 only
+    stamp = 100.0 + dt * np.arange(rows)
+    features = np.tile([1.0, 2.0, 0.5, 1.0], (rows, 4, 1))
+    features[0, 1, 3] = 5.0 + excess
+    mode, calm = np.ones(rows, dtype=bool), np.zeros((rows, 4), dtype=bool)
+    fresh = np.zeros(rows, dtype=bool)
+    added = evaluator._remembered_extrapolation(features, mode, calm, stamp, fresh)
+    expected = np.zeros((rows, 4))
+    expected[1:, 1] = weight * excess * np.exp(-(stamp[1:] - stamp[0]) / tau)
+    np.testing.assert_allclose(added, expected, rtol=1e-9, atol=1e-12)
+    assert evaluator.bound('command', features[:1])[0, 1] == pytest.approx(
+        features[0, 1] @ np.array(list(learned.values())) - 20.0 * learned['command_delay']
+        + weight * excess)  # the row itself: its own excess, in the bound already
+    one_by_one = ResidualEvaluator(model, settings)
+    by_row = np.concatenate([one_by_one._remembered_extrapolation(
+        features[k:k + 1], mode[k:k + 1], calm[k:k + 1], stamp[k:k + 1], fresh[k:k + 1])
+        for k in range(rows)])
+    np.testing.assert_array_equal(by_row, added)
+    settling = evaluator._remembered_extrapolation(features, mode, ~calm, stamp + 1.0, fresh)
+    assert np.all(settling == 0.0)
+    restart = fresh.copy()
+    restart[3] = True
+    after = ResidualEvaluator(model, settings)._remembered_extrapolation(features, mode, calm, stamp,
+                                                                        restart)
+    np.testing.assert_allclose(after[:3], expected[:3], rtol=1e-9, atol=1e-12)
+    assert np.all(after[3:] == 0.0)
 
 
 def test_the_command_path_takes_the_measured_state_at_a_current_calibration_never_saw(model):

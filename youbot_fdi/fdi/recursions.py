@@ -68,6 +68,25 @@ def scalar_recursion(a: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray
     return a * x0 + b
 
 
+def decaying_peak(values: np.ndarray, elapsed: np.ndarray, rate, level: np.ndarray):
+    """Peaks ``y_k = max(values_k, exp(-rate dt_k) y_{k-1})`` of ``values`` (N, d) >= 0 (NaN
+    counts as 0) at times ``elapsed`` (N, 1) [s] since a reference stamp, decaying at ``rate``
+    (scalar or (d,)) [1/s], continuing ``level`` (d,): the state, the log of the peak carried to
+    the reference (-inf: none). Returns (peaks (N, d), levels (N, d): the state after each row).
+
+    Kept as ``max_j (log values_j + rate elapsed_j)``, a running maximum, so a block gives the same
+    bits as its rows one by one (a product of decays would not)."""
+    with np.errstate(divide='ignore', invalid='ignore'):
+        own = np.log(values) + rate * elapsed
+    own = np.where(np.isnan(own), -np.inf, own)
+    if len(own) == 1:
+        levels = np.maximum(own, level)
+    else:
+        levels = np.maximum.accumulate(np.concatenate([np.asarray(level)[None], own]), axis=0)[1:]
+    with np.errstate(invalid='ignore'):  # -inf - x: nothing carried
+        return np.exp(levels - rate * elapsed), levels
+
+
 def nan_median(values: np.ndarray) -> np.ndarray:
     """The median over the last axis with NaN left out (NaN where every value is), shape
     ``values.shape[:-1]``: ``np.nanmedian(values, axis=-1)`` without its masked-array machinery,

@@ -45,7 +45,8 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.learned import mask_wheels, wheel_mask
 from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
 from youbot_fdi.fdi.settings import FdiSettings
-from youbot_fdi.fdi.recursions import NEVER, last_true_value, run_lengths, scalar_recursion, shifted
+from youbot_fdi.fdi.recursions import (NEVER, decaying_peak, last_true_value, run_lengths,
+                                        scalar_recursion, shifted)
 from youbot_fdi.model.firmware import slowest_time_constant
 from youbot_fdi.model.kinematics import RANK_TOLERANCE
 from youbot_fdi.samples import JointBatch
@@ -384,9 +385,15 @@ class ResidualEvaluator:
         #: ``1 / k_i``) fades only as fast as the loop's slowest mode; judged before, a wrong
         #: guess is judged as the wheel's fault. A loop with a weak integral forgets slowly (the
         #: Robotino's identified k_i / k_p = 0.06 /s: 17 s; a youBot's 0.09 s).
-        self.settle_time = max(settings.startup_time, SETTLE_TIME_CONSTANTS * slowest_time_constant(
-            model.dynamics, drive.torque_per_amp, model.firmware))
+        memory = slowest_time_constant(model.dynamics, drive.torque_per_amp, model.firmware)
+        self.settle_time = max(settings.startup_time, SETTLE_TIME_CONSTANTS * memory)
+        #: how fast the loop forgets an error of the predicted path: 1 / its slowest time
+        #: constant [1/s] (0: a mode that never decays)
+        self._forget_rate = 1.0 / memory if memory > 0.0 else math.inf
         self._disturbance = np.zeros(self.n)  # that disturbance, low-passed (n,) [N·m]
+        #: the command bound's extrapolation the loop still remembers: (reference stamp [s], the
+        #: log of its peak carried to it (n,), -inf: none) (:meth:`_remembered_extrapolation`)
+        self._extrapolated = (0.0, np.full(self.n, -np.inf))
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
         self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
         self._calibrated = {family: bool(np.isfinite(r).any()) for family, r in self._ranges.items()}
@@ -439,6 +446,7 @@ class ResidualEvaluator:
         self._silent_since = np.full(self.n, sample.stamp)
         self._answering = np.ones(self.n, dtype=bool)
         self._disturbance = np.zeros(self.n)
+        self._extrapolated = (sample.stamp, np.full(self.n, -np.inf))
         self._slip_stamp = NEVER
 
     def slipping(self, velocity: np.ndarray, stamps: np.ndarray) -> np.ndarray:
@@ -558,11 +566,17 @@ class ResidualEvaluator:
         """The bound [residual units] of ``family`` from its features (..., n, k): the learned
         weights within the range calibration covered; a feature's excess beyond it weighed with
         the larger of its learned and its default weight (honest extrapolation)."""
+        within, beyond = self.bound_parts(family, features)
+        return within if beyond is None else within + beyond
+
+    def bound_parts(self, family: str, features: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`bound` in its two parts (..., n): within the range calibration covered, and
+        beyond it (None where the family was not calibrated: no range, nothing beyond)."""
         inside = np.minimum(features, self._ranges[family])
-        bound = inside @ self._coefficients[family]
-        if self._calibrated[family]:
-            bound = bound + (features - inside) @ self._beyond[family]
-        return bound
+        within = inside @ self._coefficients[family]
+        if not self._calibrated[family]:
+            return within, None
+        return within, (features - inside) @ self._beyond[family]
 
     def beyond_calibration(self, features: dict[str, np.ndarray]) -> np.ndarray:
         """Wheels (..., n) bool whose bound features ({family: (..., n, k)}) leave the range
@@ -657,6 +671,44 @@ class ResidualEvaluator:
         self._disturbance = smoothed[-1]
         return smoothed
 
+    def _remembered_extrapolation(self, velocity_f, velocity_mode, settling, stamp, restart):
+        """What the command bound (N, n) adds for the extrapolation of earlier rows the loop
+        still remembers: the part of the bound beyond calibration's range (velocity-mode rows),
+        carried as a peak that decays with the loop's slowest time constant, less this row's own
+        (which the bound has); 0 while settling. Continues (and leaves) the state.
+
+        Why: the bound's features describe the predicted path now; an error the model made in a
+        transient it extrapolated (an aggressive stop judged from a gentle calibration, a payload's
+        inertia, a current limit acting) is still in the wheel's speed after the transient has
+        ended, and fades only as the loop forgets it, as a guessed start does
+        (:attr:`settle_time`). Judged by the row's own features, the bound had collapsed to its
+        in-range size while the error stood (the randomized suite's `runaway` false alarms
+        0.05-0.2 s after hard stops and reversals)."""
+        beyond = self.bound_parts('command', velocity_f)[1]
+        if beyond is None:  # not calibrated: no range to extrapolate from
+            return 0.0
+        reference, level = self._extrapolated
+        if not restart.any() and velocity_mode.all():  # one stretch of one mode (always live)
+            carried, levels = decaying_peak(beyond, (stamp - reference)[:, None], self._forget_rate,
+                                            level)
+            self._extrapolated = (reference, levels[-1])
+            return np.where(settling, 0.0, carried - beyond)
+        excess = np.where(velocity_mode[:, None] & ~restart[:, None], beyond, 0.0)
+        parts, start = [], 0
+        for first in [*np.flatnonzero(restart), len(stamp)]:
+            if first > start:  # rows since the last restart, from the state before them
+                elapsed = (stamp[start:first] - reference)[:, None]
+                peaks, levels = decaying_peak(excess[start:first], elapsed, self._forget_rate, level)
+                parts.append(peaks)
+                level = levels[-1]
+            if first < len(stamp):  # a restart: nothing remembered from before it
+                parts.append(np.zeros((1, self.n)))
+                reference, level = stamp[first], np.full(self.n, -np.inf)
+            start = first + 1
+        self._extrapolated = (reference, level)
+        carried = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        return np.where(settling, 0.0, carried - excess)
+
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
         """(residual, features) of the encoder family."""
         residual = (position - prev_position) - mean_speed * step
@@ -732,12 +784,13 @@ class ResidualEvaluator:
         # current implies is only a guess where the current limit acts, and the loop winds up
         # unseen).
         started = last_true_value(restart[:, None] | mask_wheels(p.resynced, n), stamp, self._started)
+        settling = stamp[:, None] - started < self._settling_limit(p.velocity_mode)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
-            velocity, torque, p.from_commands, p.commands_before, p.commanded, p.commanded_before,
-            p.commanded_latest, p.velocity_mode[:, None],
-            stamp[:, None] - started < self._settling_limit(p.velocity_mode),
-            load * p.unseen_friction,
-            self._loop_disturbance(torque_r, step, restart), step)
+            velocity, torque, p.from_commands, p.commands_before,
+            p.commanded, p.commanded_before, p.commanded_latest, p.velocity_mode[:, None], settling,
+            load * p.unseen_friction, self._loop_disturbance(torque_r, step, restart), step)
+        command_u = command_u + self._remembered_extrapolation(velocity_f, p.velocity_mode, settling,
+                                                               stamp, restart)
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
                                                    velocity - prev_velocity, step)
