@@ -9,18 +9,35 @@ from youbot_fdi.fdi.decision import FaultEvent
 pytestmark = pytest.mark.fast  # `make check`
 
 
-def alarm(stamp, wheel='wheel_joint_fl', fault='friction'):
-    return FaultEvent(stamp, 'ERROR', wheel, fault, ('torque_fl',))
+def alarm(stamp, wheel='wheel_joint_fl', fault='friction', level='ERROR'):
+    return FaultEvent(stamp, level, wheel, fault, ('torque_fl',))
+
+
+def healed(stamp, wheel='wheel_joint_fl'):
+    return alarm(stamp, wheel, level='OK')
 
 
 def test_every_judged_run_with_an_alarm_counts_even_when_runs_share_a_name():
     """A recording judged by two folds (or two runs of one plant named alike) is two runs."""
     quiet = Case('plant000/fault_free', 'unused', 60.0)
-    results = [score(quiet, [alarm(10.0)]), score(quiet, [alarm(20.0), alarm(40.0)]),
+    results = [score(quiet, [alarm(10.0)]), score(quiet, [alarm(20.0), healed(30.0), alarm(40.0)]),
                score(quiet, [])]
     table = summarise('t', results)
     assert 'false alarms        3 in 180 s fault-free' in table
     assert 'runs with one: 2 of 3 (1 recordings)' in table
+
+
+def test_a_false_alarm_is_an_episode_its_refined_type_is_no_second_one():
+    """An episode's type refined within it (a second ERROR of the wheel before its OK) is one
+    false alarm, two ERROR events; an ERROR after the OK is another; other wheels their own."""
+    quiet = Case('plant000/fault_free', 'unused', 60.0)
+    events = [alarm(10.0), alarm(10.5, fault='torque_loss'), healed(12.0), alarm(20.0),
+              alarm(20.2, wheel='wheel_joint_br'), alarm(25.0, wheel='wheel_joint_br', fault='stuck')]
+    result = score(quiet, events)
+    assert result['false_alarms'] == 3 and result['false_alarm_events'] == 5
+    table = summarise('t', [result])
+    assert 'false alarms        3 in 60 s fault-free' in table
+    assert '(5 ERROR events with the types refined)' in table
 
 
 def test_an_alarm_after_the_onset_on_the_right_wheel_is_a_detection_not_a_false_alarm():

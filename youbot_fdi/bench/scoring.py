@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from youbot_fdi.faults import Level, LOAD_CHANGE, UNSEEN_OPERATING_POINT
-from youbot_fdi.fdi.lifecycle import closest_events
+from youbot_fdi.fdi.lifecycle import closest_events, component
 
 ERROR = Level.ERROR
 #: The type named for an episode is its last ERROR on that wheel within this time of the first [s]
@@ -32,9 +32,25 @@ class Case:
     injected: float = math.nan  # when the fault was injected, if before it shows (runaway) [s]
 
 
+def opening(events):
+    """The ERROR events of ``events`` (in stamp order) that open an episode: a component's first
+    ERROR, or its first after an OK. A type refined within an episode (``fdi/lifecycle.py``) is
+    a second ERROR of the same alarm, not another one."""
+    opened, previous = [], {}
+    for event in events:
+        key = component(event)
+        if event.level == ERROR and previous.get(key) != ERROR:
+            opened.append(event)
+        previous[key] = event.level
+    return opened
+
+
 def score(case, events):
-    """A result dict for ``case`` from its fault events (FaultEvent list)."""
+    """A result dict for ``case`` from its fault events (FaultEvent list). False alarms are
+    counted as episodes (:func:`opening`, ``false_alarms``) and as ERROR events
+    (``false_alarm_events``: with the types refined within them)."""
     alarms = [e for e in events if e.level == ERROR]
+    episodes = {id(e) for e in opening(events)}
     faulty = case.fault is not None
     begins = case.onset if math.isnan(case.injected) else min(case.injected, case.onset)
     early = [e for e in alarms if not faulty or e.stamp < begins]
@@ -47,7 +63,10 @@ def score(case, events):
     fault_free = begins - case.start if faulty else case.duration
     return {'case': case.name, 'fault': case.fault, 'wheel': case.wheel,
             'fault_free_seconds': fault_free,
-            'false_alarms': len(early) + (0 if first is None else len({e.wheel for e in late} - {case.wheel})),
+            'false_alarms': (sum(id(e) in episodes for e in early)
+                             + (0 if first is None else len({e.wheel for e in late} - {case.wheel}))),
+            'false_alarm_events': len(early) + (0 if first is None else len({e.wheel for e in late}
+                                                                            - {case.wheel})),
             'false_alarm_faults': sorted({f'{e.wheel}:{e.fault}' for e in early}),
             'detected': first is not None,
             'isolated': first is not None and first.wheel == case.wheel,
@@ -76,8 +95,11 @@ def summarise(title, results):
     # name count once each); the names are listed once
     alarmed = sum(1 for r in results if r['false_alarms'])
     with_alarms = sorted({r['case'] for r in results if r['false_alarms']})
+    events = sum(r.get('false_alarm_events', r['false_alarms']) for r in results)
     lines.append(f'  false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free'
                  + (f' = {false_alarms / hours:.1f} per hour' if hours else '')
+                 + (f' ({events} ERROR events with the types refined)' if events != false_alarms
+                    else '')
                  + f'; runs with one: {alarmed} of {len(results)}'
                  + (f' ({len(with_alarms)} recordings)' if len(with_alarms) != alarmed else ''))
     if with_alarms:
