@@ -49,6 +49,19 @@ def test_an_alarm_after_the_onset_on_the_right_wheel_is_a_detection_not_a_false_
     assert result['fault_free_seconds'] == 10.0 and math.isinf(result['closest_events'])
 
 
+def test_an_alarm_on_another_wheel_after_the_fault_is_its_isolation_not_a_false_alarm():
+    """The rate of false alarms is of fault-free driving: an alarm on another wheel after the
+    fault began (a runaway wheel drags the others) is counted apart, with the runs it came in;
+    one before the fault is a false alarm."""
+    case = Case('runaway', 'unused', 20.0, fault='runaway', wheel='wheel_joint_fl', onset=10.0)
+    result = score(case, [alarm(4.0, wheel='wheel_joint_br'), healed(6.0, wheel='wheel_joint_br'),
+                          alarm(10.1, fault='runaway'), alarm(12.0, wheel='wheel_joint_bl')])
+    assert result['isolated'] and result['false_alarms'] == 1 and result['other_wheels'] == 1
+    table = summarise('t', [result, score(case, [alarm(10.2, fault='runaway')])])
+    assert 'false alarms        1 in 20 s fault-free' in table
+    assert 'after a fault began (its isolation, not fault-free driving): 1 in 1 of 2 fault runs' in table
+
+
 def test_a_randomized_fault_is_visible_once_its_wheel_is_driven():
     """The randomized suite's delays count from when a fault could be seen: a fault on a wheel
     told to stand (stuck, torque loss, friction, a frozen encoder) from the first command that

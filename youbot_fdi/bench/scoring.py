@@ -46,9 +46,12 @@ def opening(events):
 
 
 def score(case, events):
-    """A result dict for ``case`` from its fault events (FaultEvent list). False alarms are
-    counted as episodes (:func:`opening`, ``false_alarms``) and as ERROR events
-    (``false_alarm_events``: with the types refined within them)."""
+    """A result dict for ``case`` from its fault events (FaultEvent list). False alarms are the
+    alarms of its fault-free driving (before a fault began, the time ``fault_free_seconds`` they
+    are a rate of), counted as episodes (:func:`opening`, ``false_alarms``) and as ERROR events
+    (``false_alarm_events``: with the types refined within them). Alarms on other wheels after a
+    fault began are that fault's isolation, not driving without one: ``other_wheels`` (a wheel
+    that does not follow the kinematics drags the others; isolation is judged by the first)."""
     alarms = [e for e in events if e.level == ERROR]
     episodes = {id(e) for e in opening(events)}
     faulty = case.fault is not None
@@ -63,10 +66,9 @@ def score(case, events):
     fault_free = begins - case.start if faulty else case.duration
     return {'case': case.name, 'fault': case.fault, 'wheel': case.wheel,
             'fault_free_seconds': fault_free,
-            'false_alarms': (sum(id(e) in episodes for e in early)
-                             + (0 if first is None else len({e.wheel for e in late} - {case.wheel}))),
-            'false_alarm_events': len(early) + (0 if first is None else len({e.wheel for e in late}
-                                                                            - {case.wheel})),
+            'false_alarms': sum(id(e) in episodes for e in early),
+            'false_alarm_events': len(early),
+            'other_wheels': len({e.wheel for e in late} - {case.wheel}),
             'false_alarm_faults': sorted({f'{e.wheel}:{e.fault}' for e in early}),
             'detected': first is not None,
             'isolated': first is not None and first.wheel == case.wheel,
@@ -104,6 +106,11 @@ def summarise(title, results):
                  + (f' ({len(with_alarms)} recordings)' if len(with_alarms) != alarmed else ''))
     if with_alarms:
         lines.append('    ' + ', '.join(with_alarms[:12]) + (' ...' if len(with_alarms) > 12 else ''))
+    others = [r.get('other_wheels', 0) for r in faulty]
+    if any(others):
+        lines.append(f'  alarms on another wheel after a fault began (its isolation, not fault-free '
+                     f'driving): {sum(others)} in {sum(1 for o in others if o)} of {len(faulty)} '
+                     f'fault runs')
     lines.append(f'  load-condition warnings (WARN, not alarms): {sum(r["warnings"] for r in results)}; '
                  f'operating point not seen in calibration: '
                  f'{sum(r.get("unseen_warnings", 0) for r in results)}')
