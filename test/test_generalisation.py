@@ -403,6 +403,39 @@ def test_the_observer_explains_the_rollers_drag_of_a_sideways_drive(model):
     np.testing.assert_allclose(batch.values['torque'], 0.0, atol=1e-6)
 
 
+def test_the_rollers_drag_a_floor_adds_is_measured_from_what_the_wheels_share(model):
+    """Driving forward and a little sideways, a floor that drags the mecanum rollers with
+    D = 0.05 N·m the model does not have leaves ``D shape`` unexplained: one diagonal braked, the
+    other helped (against the wheels' speeds: no load factor). Every voting wheel's smoothed
+    ratio of residual to pattern is D, so the shared drag is D; a fault on one wheel does not move
+    it (a median of four); a pattern of the opposite sign is no drag (it dissipates: 0); a base
+    that slips beyond calibration does not vote; omni wheels have no pattern."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    speeds = model.kinematics.inverse(np.array([0.3, 0.05, 0.0]))  # kinematic convention
+    shape = model.dynamics.roller_drag_shape(speeds)
+    assert np.any(np.sign(shape) != np.sign(speeds))  # helps a diagonal: not friction's pattern
+    rows, drag, fault = 200, 0.05, np.array([0.2, 0.0, 0.0, 0.0])  # [N·m]
+    keep = np.full(rows, np.exp(-0.01 / FdiSettings().load_time_constant))
+    friction, inertial = np.full((rows, 4), 0.1), np.zeros((rows, 4))
+
+    def shared(residual, settings=FdiSettings(), profile=model):
+        observer = ModelObserver(profile, settings)
+        velocity = np.tile(speeds, (rows, 1))
+        estimate, pattern = observer._shared_drag(velocity, velocity, np.tile(residual, (rows, 1)),
+                                                  inertial, friction, keep)
+        np.testing.assert_allclose(pattern, np.tile(shape, (rows, 1)))
+        return estimate
+
+    estimate = shared(drag * shape)
+    assert estimate[0] == 0.0  # one row's vote is not yet a quarter of the pattern
+    assert estimate[-1] == pytest.approx(drag, rel=1e-12)
+    assert shared(drag * shape + fault)[-1] == pytest.approx(drag, rel=1e-12)
+    assert np.all(shared(-drag * shape) == 0.0)
+    never_slipped = replace(FdiSettings(), calibrated_slip=0.0, speed_sigma=0.0)  # limit 0
+    assert np.all(shared(drag * shape, never_slipped) == 0.0)  # rounding's slip is beyond it
+    assert not ModelObserver(load_model('robotino'), FdiSettings())._drag_size.any()
+
+
 def test_unsigned_effort_is_signed_by_the_explained_torque(model):
     """A profile whose effort is a magnitude: the generator signs it, so a braking wheel's torque
     is negative as it is physically."""

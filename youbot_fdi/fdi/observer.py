@@ -41,7 +41,7 @@ import numpy as np
 from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mask
 from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, nan_median, shifted,
                                        scalar_recursion)
-from youbot_fdi.model.dynamics import zoh_discretize
+from youbot_fdi.model.dynamics import ACROSS_ROLLING, zoh_discretize
 from youbot_fdi.samples import CommandBatch, JointBatch, VELOCITY
 from youbot_fdi.naming import wheel_suffix
 
@@ -59,6 +59,16 @@ DISCRETE_CACHE_SIZE = 1024  # discretisations kept across observers (about 0.4 k
 #: The fewest voting wheels whose median is the load factor (a median of three is moved by no
 #: single wheel).
 MIN_LOAD_VOTES = 3
+#: A speed reading tells a speed to within this many of its noise (``speed_sigma``): a reading
+#: inside its own noise does not show that the wheel turns (for a frozen encoder, the speed less
+#: this much must move it by FROZEN_MIN_TICKS), nor that it left an operating point, nor where in
+#: the Coulomb step it is, nor a slip (three sigma: a noisy reading passes it by chance in about
+#: one sample of 370 either way, 700 one way, and three in a row practically never).
+SPEED_NOISE_SIGMAS = 3.0
+#: A wheel votes on the rollers' shared drag where its contact glides along its rollers at least
+#: so fast that the drag's tanh is at this share of its full size: the drag's pattern is then
+#: known, whatever the size of the glide [-].
+DRAG_GLIDE_SHARE = 0.5
 #: The slowest calibrated speed the extrapolation of friction divides by [rad/s].
 MIN_CALIBRATED_SPEED = 1e-3
 #: The share of the largest calibrated torque from which the command path is not predicted [-].
@@ -241,6 +251,15 @@ class ExplainedTorque(NamedTuple):
     outside: np.ndarray  # wheels outside the learned correction's calibration (bit mask)
 
 
+def slip_limit(settings: FdiSettings) -> float:
+    """The slip speed [rad/s] (``Kinematics.slip_speed``) beyond which the wheels slip as
+    calibration never saw: what it measured (``calibrated_slip``, widened by
+    ``calibration_range_margin``) and ``SPEED_NOISE_SIGMAS`` times the speed reading's noise on
+    it (inf: calibration could not tell)."""
+    return ((1.0 + settings.calibration_range_margin) * settings.calibrated_slip
+            + SPEED_NOISE_SIGMAS * settings.speed_sigma)
+
+
 class ModelObserver:
     """Stateful model predictions for one base (commands, observer, firmware loop, load factor).
 
@@ -283,6 +302,14 @@ class ModelObserver:
         self.signed_effort = drive.signed_effort
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
         self._load = (np.zeros(2 * self.n), 1.0)
+        self.dynamics, self.kinematics = dyn, model.kinematics
+        #: the rollers' drag in full per unit D_r, |cos(gamma)| (n,) [-] (0: omni wheels, none)
+        self._drag_size = np.where(np.abs(dyn.drag_projection) > ACROSS_ROLLING,
+                                   np.abs(dyn.drag_projection), 0.0)
+        #: smoothed [drag part; glide share] per wheel and the shared drag [N·m]; outlives gaps
+        self._drag = (np.zeros(2 * self.n), 0.0)
+        #: beyond this slip speed the wheels slip as calibration never saw [rad/s]
+        self.slip_limit = slip_limit(settings)
         self._last = None  # (stamp, velocity, signed torque) of the last sample
         #: the wheels whose last torque was beyond the calibrated range (n,)
         self._was_beyond = np.zeros(self.n, dtype=bool)
@@ -678,6 +705,49 @@ class ModelObserver:
         # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
         return np.maximum(shared, 0.0), voted
 
+    def _shared_drag(self, velocity, mean_speed, residual, inertial, friction, keep):
+        """The rollers' drag the floor adds beyond the model's [N·m] per row (N,), shared by the
+        wheels, and its pattern per unit (N, n) (``Dynamics.roller_drag_shape``), from the torque
+        the model leaves unexplained ``residual`` (N, n) [N·m] (at the load factor) in rows of
+        wheel speeds ``velocity`` and interval means ``mean_speed`` (N, n) [rad/s]; ``inertial``
+        and ``friction`` (N, n) [N·m] the explained torque's parts, ``keep`` (N,) the smoothing's
+        weight of the past (the load factor's). Continues (and leaves) the state.
+
+        Why: a mecanum roller gliding along its free direction is held back by the floor, and a
+        part ``cos(gamma)`` of that turns its wheel: one diagonal braked, the other helped, in a
+        sideways or diagonal motion (``roller_drag_torque``). It grows with the floor and the
+        load, as the other contact friction does, and calibration saw one floor, so its size is
+        measured as the load factor is, from what the wheels share: each wheel whose contact
+        glides (``DRAG_GLIDE_SHARE`` of the drag's tanh) votes, in near-steady driving and while
+        the wheels fit a rigid motion (``slip_limit``: a slipping or faulty wheel drags the others
+        off the kinematics), with the ratio of its smoothed residual to the pattern; the median
+        of at least ``MIN_LOAD_VOTES`` voters is taken (a fault stays its wheel's), else the last.
+        The drag dissipates: the model's drag and this one together are not negative. On the
+        randomized suite the false torque alarms left had this pattern, two diagonal wheels
+        reading +0.7 and two -0.7 of their bounds in a slightly diagonal drive on a floor x2.5;
+        the load factor, a median over the two clusters, read neither. Omni wheels: no pattern,
+        nothing to measure (0 throughout)."""
+        n = self.n
+        shape = self.dynamics.roller_drag_shape(mean_speed)
+        rows = len(keep)
+        if not self._drag_size.any():
+            return np.zeros(rows), shape
+        gliding = np.abs(shape) >= DRAG_GLIDE_SHARE * self._drag_size
+        rigid = (self.kinematics.slip_speed(velocity) <= self.slip_limit)[:, None]
+        votes = gliding & rigid & (np.abs(inertial) <= np.abs(friction)) & np.isfinite(residual)
+        parts = np.concatenate([np.where(votes, residual * np.sign(shape), 0.0),
+                                np.where(votes, np.abs(shape), 0.0)], axis=1)
+        smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * parts, self._drag[0])
+        share = smoothed[:, n:]
+        voters = share >= DRAG_GLIDE_SHARE ** 2 * self._drag_size
+        ratio = np.where(voters, smoothed[:, :n] / np.where(voters, share, 1.0), np.nan)
+        voted = voters.sum(axis=1) >= min(MIN_LOAD_VOTES, n)
+        shared = nan_median(np.where(voted[:, None], ratio, 0.0))
+        drag = np.maximum(last_true_value(voted, shared, self._drag[1]),
+                          -self.dynamics.parameters.roller_drag)
+        self._drag = (smoothed[-1], float(drag[-1]))
+        return drag, shape
+
     def _smoothing(self, step):
         """Per-row weight of the past in the load factor's smoothing (``load_time_constant``)."""
         return np.exp(-step / self.settings.load_time_constant)
@@ -737,6 +807,11 @@ class ModelObserver:
         shared, voted = self._load_factor(smoothed, self._load[1])
         load = last_true_value(voted, shared, self._load[1])
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
+        drag, drag_shape = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
+                                             mean_torque - explained - (load[:, None] - 1.0) * friction,
+                                             explained - friction, friction, keep)
+        drag_torque = drag[:, None] * drag_shape
+        explained, coulomb = explained + drag_torque, coulomb + drag_torque
 
         # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
         known = np.isfinite(mean_torque).all(axis=1, keepdims=True)

@@ -43,7 +43,8 @@ import numpy as np
 
 from youbot_fdi.errors import ConfigError
 from youbot_fdi.fdi.learned import mask_wheels, wheel_mask
-from youbot_fdi.fdi.observer import ModelObserver, PredictionBatch, signed_torque
+from youbot_fdi.fdi.observer import (SPEED_NOISE_SIGMAS, ModelObserver, PredictionBatch, signed_torque,
+                                     slip_limit)
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.fdi.recursions import (NEVER, decaying_peak, last_true_value, run_lengths,
                                         scalar_recursion, shifted)
@@ -80,12 +81,6 @@ BOUND_TERMS = {
 #: A position reading that repeats exactly while the wheel should have turned this many encoder
 #: ticks within the interval is evidence of a frozen sensor [ticks].
 FROZEN_MIN_TICKS = 2.0
-#: A speed reading tells a speed to within this many of its noise (``speed_sigma``): a reading
-#: inside its own noise does not show that the wheel turns (for a frozen encoder, the speed less
-#: this much must move it by FROZEN_MIN_TICKS), nor that it left an operating point, nor where in
-#: the Coulomb step it is (three sigma: a noisy reading passes it by chance in about one sample
-#: of 370 either way, 700 one way, and three in a row practically never).
-SPEED_NOISE_SIGMAS = 3.0
 #: A command-path prediction started from a guessed loop state is judged once the guess has faded
 #: through this many of the loop's slowest time constants (to e^-3, 5 %) [-]
 SETTLE_TIME_CONSTANTS = 3.0
@@ -415,8 +410,7 @@ class ResidualEvaluator:
         #: the wheels slip beyond calibration where the speed no rigid motion explains exceeds
         #: what calibration measured (widened by its margin) and three times the speed
         #: reading's noise on it [rad/s] (inf: never)
-        self.slip_limit = ((1.0 + settings.calibration_range_margin) * settings.calibrated_slip
-                           + self._speed_uncertainty)
+        self.slip_limit = slip_limit(settings)
         self._slip_stamp = NEVER  # [s] of the last row in which the wheels slipped so
         self._last = None  # (stamp, position, velocity, signed torque), kinematic convention
         self._silent_since = None  # (n,) stamp from which each wheel's silence counts [s]
