@@ -421,9 +421,10 @@ def test_the_rollers_drag_a_floor_adds_is_measured_from_what_the_wheels_share(mo
     def shared(residual, settings=FdiSettings(), profile=model):
         observer = ModelObserver(profile, settings)
         velocity = np.tile(speeds, (rows, 1))
-        estimate, pattern = observer._shared_drag(velocity, velocity, np.tile(residual, (rows, 1)),
-                                                  inertial, friction, keep)
-        np.testing.assert_allclose(pattern, np.tile(shape, (rows, 1)))
+        torque = observer._shared_drag(velocity, velocity, np.tile(residual, (rows, 1)), inertial,
+                                       friction, keep)
+        estimate = torque @ shape / (shape @ shape)  # the size: the torque is size x pattern
+        np.testing.assert_allclose(torque, estimate[:, None] * shape, rtol=1e-12, atol=1e-15)
         return estimate
 
     estimate = shared(drag * shape)

@@ -706,8 +706,8 @@ class ModelObserver:
         return np.maximum(shared, 0.0), voted
 
     def _shared_drag(self, velocity, mean_speed, residual, inertial, friction, keep):
-        """The rollers' drag the floor adds beyond the model's [N·m] per row (N,), shared by the
-        wheels, and its pattern per unit (N, n) (``Dynamics.roller_drag_shape``), from the torque
+        """The torque [N·m] (N, n) of the rollers' drag the floor adds beyond the model's: its
+        size, shared by the wheels, times its pattern (``Dynamics.roller_drag_shape``), from the torque
         the model leaves unexplained ``residual`` (N, n) [N·m] (at the load factor) in rows of
         wheel speeds ``velocity`` and interval means ``mean_speed`` (N, n) [rad/s]; ``inertial``
         and ``friction`` (N, n) [N·m] the explained torque's parts, ``keep`` (N,) the smoothing's
@@ -725,13 +725,10 @@ class ModelObserver:
         The drag dissipates: the model's drag and this one together are not negative. On the
         randomized suite the false torque alarms left had this pattern, two diagonal wheels
         reading +0.7 and two -0.7 of their bounds in a slightly diagonal drive on a floor x2.5;
-        the load factor, a median over the two clusters, read neither. Omni wheels: no pattern,
-        nothing to measure (0 throughout)."""
+        the load factor, a median over the two clusters, read neither. Omni wheels have no
+        pattern: not called."""
         n = self.n
         shape = self.dynamics.roller_drag_shape(mean_speed)
-        rows = len(keep)
-        if not self._drag_size.any():
-            return np.zeros(rows), shape
         gliding = np.abs(shape) >= DRAG_GLIDE_SHARE * self._drag_size
         rigid = (self.kinematics.slip_speed(velocity) <= self.slip_limit)[:, None]
         votes = gliding & rigid & (np.abs(inertial) <= np.abs(friction)) & np.isfinite(residual)
@@ -746,7 +743,7 @@ class ModelObserver:
         drag = np.maximum(last_true_value(voted, shared, self._drag[1]),
                           -self.dynamics.parameters.roller_drag)
         self._drag = (smoothed[-1], float(drag[-1]))
-        return drag, shape
+        return drag[:, None] * shape
 
     def _smoothing(self, step):
         """Per-row weight of the past in the load factor's smoothing (``load_time_constant``)."""
@@ -807,11 +804,11 @@ class ModelObserver:
         shared, voted = self._load_factor(smoothed, self._load[1])
         load = last_true_value(voted, shared, self._load[1])
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
-        drag, drag_shape = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
-                                             mean_torque - explained - (load[:, None] - 1.0) * friction,
-                                             explained - friction, friction, keep)
-        drag_torque = drag[:, None] * drag_shape
-        explained, coulomb = explained + drag_torque, coulomb + drag_torque
+        if self._drag_size.any():  # mecanum rollers (omni wheels: no drag pattern)
+            drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
+                                     mean_torque - explained - (load[:, None] - 1.0) * friction,
+                                     explained - friction, friction, keep)
+            explained, coulomb = explained + drag, coulomb + drag
 
         # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
         known = np.isfinite(mean_torque).all(axis=1, keepdims=True)
