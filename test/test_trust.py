@@ -185,6 +185,12 @@ def test_the_command_bound_remembers_an_extrapolated_transient_as_the_loop_does(
                                                                         restart)
     np.testing.assert_allclose(after[:3], expected[:3], rtol=1e-9, atol=1e-12)
     assert np.all(after[3:] == 0.0)
+    current_mode = mode.copy()
+    current_mode[2:] = False  # an effort bound [N·m] takes nothing of the speed's memory
+    mixed = ResidualEvaluator(model, settings)._remembered_extrapolation(features, current_mode, calm,
+                                                                        stamp, fresh)
+    np.testing.assert_allclose(mixed[:2], expected[:2], rtol=1e-9, atol=1e-12)
+    assert np.all(mixed[2:] == 0.0)
 
 
 def test_the_command_path_takes_the_measured_state_at_a_current_calibration_never_saw(model):

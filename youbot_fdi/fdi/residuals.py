@@ -701,7 +701,8 @@ class ResidualEvaluator:
             start = first + 1
         self._extrapolated = (reference, level)
         carried = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        return np.where(settling, 0.0, carried - excess)
+        # a current-mode row's bound is of effort [N·m]: the speed's memory is not added to it
+        return np.where(settling | ~velocity_mode[:, None], 0.0, carried - excess)
 
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
         """(residual, features) of the encoder family."""
