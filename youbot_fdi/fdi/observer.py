@@ -736,6 +736,8 @@ class ModelObserver:
                                 np.where(votes, np.abs(shape), 0.0)], axis=1)
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * parts, self._drag[0])
         share = smoothed[:, n:]
+        # a wheel's ratio counts while its smoothed pattern is at least half what a wheel voting
+        # throughout at the least gliding share has (the smoothing's memory, not one row)
         voters = share >= DRAG_GLIDE_SHARE ** 2 * self._drag_size
         ratio = np.where(voters, smoothed[:, :n] / np.where(voters, share, 1.0), np.nan)
         voted = voters.sum(axis=1) >= min(MIN_LOAD_VOTES, n)
