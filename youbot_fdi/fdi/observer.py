@@ -729,21 +729,29 @@ class ModelObserver:
         pattern: not called."""
         n = self.n
         shape = self.dynamics.roller_drag_shape(mean_speed)
-        gliding = np.abs(shape) >= DRAG_GLIDE_SHARE * self._drag_size
-        rigid = (self.kinematics.slip_speed(velocity) <= self.slip_limit)[:, None]
-        votes = gliding & rigid & (np.abs(inertial) <= np.abs(friction)) & np.isfinite(residual)
+        votes = np.abs(shape) >= DRAG_GLIDE_SHARE * self._drag_size  # gliding
+        least = DRAG_GLIDE_SHARE ** 2 * self._drag_size  # see ``voters`` below
+        before, held = self._drag
+        if (len(keep) == 1 and not votes.any()
+                and np.count_nonzero(before[n:] >= least) < min(MIN_LOAD_VOTES, n)):
+            # One row (the live path) in which no wheel votes, after too few did: the smoothing
+            # only fades and the drag is held, the arithmetic below without its median.
+            self._drag = (keep[0] * before, held)
+            return held * shape
+        if votes.any():  # and near-steady, known, rigid (a straight drive glides nowhere)
+            votes &= ((np.abs(inertial) <= np.abs(friction)) & np.isfinite(residual)
+                      & (self.kinematics.slip_speed(velocity) <= self.slip_limit)[:, None])
         parts = np.concatenate([np.where(votes, residual * np.sign(shape), 0.0),
                                 np.where(votes, np.abs(shape), 0.0)], axis=1)
-        smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * parts, self._drag[0])
+        smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * parts, before)
         share = smoothed[:, n:]
         # a wheel's ratio counts while its smoothed pattern is at least half what a wheel voting
         # throughout at the least gliding share has (the smoothing's memory, not one row)
-        voters = share >= DRAG_GLIDE_SHARE ** 2 * self._drag_size
+        voters = share >= least
         ratio = np.where(voters, smoothed[:, :n] / np.where(voters, share, 1.0), np.nan)
         voted = voters.sum(axis=1) >= min(MIN_LOAD_VOTES, n)
         shared = nan_median(np.where(voted[:, None], ratio, 0.0))
-        drag = np.maximum(last_true_value(voted, shared, self._drag[1]),
-                          -self.dynamics.parameters.roller_drag)
+        drag = np.maximum(last_true_value(voted, shared, held), -self.dynamics.parameters.roller_drag)
         self._drag = (smoothed[-1], float(drag[-1]))
         return drag[:, None] * shape
 

@@ -76,15 +76,14 @@ def decaying_peak(values: np.ndarray, elapsed: np.ndarray, rate, level: np.ndarr
 
     Kept as ``max_j (log values_j + rate elapsed_j)``, a running maximum, so a block gives the same
     bits as its rows one by one (a product of decays would not)."""
-    with np.errstate(divide='ignore', invalid='ignore'):
-        own = np.log(values) + rate * elapsed
-    own = np.where(np.isnan(own), -np.inf, own)
+    values = np.asarray(values, dtype=float)
+    # log 0 (and of NaN) is -inf here: nothing to carry (no warning state to switch)
+    own = np.log(values, out=np.full(values.shape, -np.inf), where=values > 0.0) + rate * elapsed
     if len(own) == 1:
         levels = np.maximum(own, level)
     else:
         levels = np.maximum.accumulate(np.concatenate([np.asarray(level)[None], own]), axis=0)[1:]
-    with np.errstate(invalid='ignore'):  # -inf - x: nothing carried
-        return np.exp(levels - rate * elapsed), levels
+    return np.exp(levels - rate * elapsed), levels
 
 
 def nan_median(values: np.ndarray) -> np.ndarray:

@@ -682,6 +682,10 @@ class ResidualEvaluator:
         if beyond is None:  # not calibrated: no range to extrapolate from
             return 0.0
         reference, level = self._extrapolated
+        if np.isneginf(level).all() and not beyond.any():  # nothing beyond, none remembered
+            if restart.any():  # the reference a restart sets, as below
+                self._extrapolated = (stamp[np.flatnonzero(restart)[-1]], level)
+            return 0.0
         if not restart.any() and velocity_mode.all():  # one stretch of one mode (always live)
             carried, levels = decaying_peak(beyond, (stamp - reference)[:, None], self._forget_rate,
                                             level)
