@@ -814,7 +814,7 @@ class ModelObserver:
         shared, voted = self._load_factor(smoothed, self._load[1])
         load = last_true_value(voted, shared, self._load[1])
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
-        if self._drag_size.any():  # mecanum rollers (omni wheels: no drag pattern)
+        if self._drag_size.any() and s.shared_drag:  # mecanum rollers (omni: no drag pattern)
             drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
                                      mean_torque - explained - (load[:, None] - 1.0) * friction,
                                      explained - friction, friction, keep)

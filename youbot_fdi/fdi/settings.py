@@ -137,6 +137,10 @@ class FdiSettings:
     # identify: fit the rollers' drag (model/dynamics.py, roller_drag) with the friction; off:
     # held at the prior profile's value (docs/fdi.md: why it is not on by default)
     fit_roller_drag: bool = False
+    # the rollers' drag a floor adds beyond the model's, measured online from what the wheels
+    # share (ModelObserver._shared_drag); identify runs without it: calibration is the floor the
+    # model is fitted to, and what the physics misses there is for the learned corrections
+    shared_drag: bool = True
     classification_window: float = 0.5  # data used to name the fault type [s]
     # the event lifecycle (youbot_fdi/fdi/lifecycle.py): an alarm is published once it stood
     # confirm_time, OK once it has been gone heal_time; no two events of a component within dwell
