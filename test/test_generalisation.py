@@ -434,7 +434,7 @@ def test_the_rollers_drag_a_floor_adds_is_measured_from_what_the_wheels_share(mo
     assert np.all(shared(-drag * shape) == 0.0)
     never_slipped = replace(FdiSettings(), calibrated_slip=0.0, speed_sigma=0.0)  # limit 0
     assert np.all(shared(drag * shape, never_slipped) == 0.0)  # rounding's slip is beyond it
-    assert not ModelObserver(load_model('robotino'), FdiSettings())._drag_size.any()
+    assert not load_model('robotino').dynamics.drag_share.any()  # omni: nothing to measure
 
 
 def test_unsigned_effort_is_signed_by_the_explained_torque(model):

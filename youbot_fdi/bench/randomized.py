@@ -323,7 +323,7 @@ def summarise(params, scored):
              f'{RUN_SECONDS:g} s and the fault runs up to their fault); runs with an alarm: '
              f'{len(alarmed)} ({alarmed_hours:.2f} h of driving); false alarms: '
              f'{sum(r["false_alarms"] for r in results)} (ERROR events, with the types refined '
-             f'within them: {sum(r.get("false_alarm_events", r["false_alarms"]) for r in results)})']
+             f'within them: {sum(r["false_alarm_events"] for r in results)})']
     if alarmed:
         lines.append('  ' + describe_alarms(params, alarmed))
     lines.append('')

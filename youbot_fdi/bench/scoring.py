@@ -97,7 +97,7 @@ def summarise(title, results):
     # name count once each); the names are listed once
     alarmed = sum(1 for r in results if r['false_alarms'])
     with_alarms = sorted({r['case'] for r in results if r['false_alarms']})
-    events = sum(r.get('false_alarm_events', r['false_alarms']) for r in results)
+    events = sum(r['false_alarm_events'] for r in results)
     lines.append(f'  false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free'
                  + (f' = {false_alarms / hours:.1f} per hour' if hours else '')
                  + (f' ({events} ERROR events with the types refined)' if events != false_alarms
@@ -106,7 +106,7 @@ def summarise(title, results):
                  + (f' ({len(with_alarms)} recordings)' if len(with_alarms) != alarmed else ''))
     if with_alarms:
         lines.append('    ' + ', '.join(with_alarms[:12]) + (' ...' if len(with_alarms) > 12 else ''))
-    others = [r.get('other_wheels', 0) for r in faulty]
+    others = [r['other_wheels'] for r in faulty]
     if any(others):
         lines.append(f'  alarms on another wheel after a fault began (its isolation, not fault-free '
                      f'driving): {sum(others)} in {sum(1 for o in others if o)} of {len(faulty)} '

@@ -378,8 +378,7 @@ def simulate_from_currents(model, arrays):
     residual generator's observer without its correction (Coulomb friction at the measured speed)."""
     # Without the commands: the command path (the firmware loop, its saturated rows stepped
     # period by period) is most of a run's cost and plays no part in this prediction.
-    batch = run_generator(model, replace(arrays, commands=[]),
-                          FdiSettings(observer_time_constant=math.inf, shared_drag=False))
+    batch = run_generator(model, replace(arrays, commands=[]), own_settings(observer_time_constant=math.inf))
     predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
     predicted[np.searchsorted(arrays.time, batch.stamp)] = batch.velocity - batch.values['observer']
     return predicted
@@ -393,6 +392,13 @@ def _block(model, arrays):
     command_batch = arrays.command_batch
     joints = JointBatch(arrays.time, signs * arrays.position, signs * arrays.velocity, signs * arrays.torque)
     return joints, command_batch, np.searchsorted(command_batch.stamp, arrays.time, side='right')
+
+
+def own_settings(**values):
+    """FdiSettings (``values`` set) for identify's own runs of the FDI: without the online shared
+    drag. Calibration is the floor the model is fitted to, so what the physics misses there is the
+    learned corrections' and the bounds', not a change of floor."""
+    return FdiSettings(shared_drag=False, **values)
 
 
 def run_generator(model, arrays, settings):
@@ -421,8 +427,8 @@ def simulate_from_commands(model, arrays, input_delay=0.0, batch=None, command_t
     driver holds the last one); from ``batch`` (the generator already run over ``arrays`` with
     that delay) where given."""
     if batch is None:
-        stamp, speed = run_command_path(model, arrays, FdiSettings(input_delay=input_delay, shared_drag=False,
-                                                                   command_timeout=command_timeout))
+        stamp, speed = run_command_path(model, arrays, own_settings(input_delay=input_delay,
+                                                                    command_timeout=command_timeout))
     else:
         stamp, speed = batch.stamp, batch.command_speed
     predicted = arrays.velocity.copy()  # where the generator restarts: the measurement
@@ -440,8 +446,8 @@ def command_speed_error(model, arrays, input_delay, command_timeout=WATCHDOG):
 def _effort_error(model, arrays, input_delay, command_timeout=WATCHDOG):
     """Mean squared difference [(N·m)²] of measured and commanded effort (current mode), the
     commands acting ``input_delay`` [s] after their stamps, held ``command_timeout`` [s]."""
-    batch = run_generator(model, arrays, FdiSettings(input_delay=input_delay, shared_drag=False,
-                                                     command_timeout=command_timeout))
+    batch = run_generator(model, arrays, own_settings(input_delay=input_delay,
+                                                      command_timeout=command_timeout))
     rows = ~batch.velocity_mode
     return float(np.mean(batch.values['command'][rows] ** 2)) if rows.any() else 0.0
 
@@ -847,9 +853,7 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     false-alarm rate); ``source`` names the recording in the result.
     (:func:`youbot_fdi.app.recordings.identify_recording` reads a recording and calls this.)"""
     require_samples(len(arrays.time), source)
-    # Calibration is the floor the model is fitted to: what the physics misses there is the
-    # learned corrections' and the bounds', not a change of floor (the online shared drag).
-    settings = replace(settings, shared_drag=False)
+    settings = replace(settings, shared_drag=False)  # as own_settings: calibration's own floor
     fit = fit_dynamics(arrays, prior_model, settings)
     dynamics, info = fit.parameters, fit.info
     interval = float(np.median(np.diff(arrays.time)))

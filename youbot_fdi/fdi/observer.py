@@ -41,7 +41,7 @@ import numpy as np
 from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mask
 from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, nan_median, shifted,
                                        scalar_recursion)
-from youbot_fdi.model.dynamics import ACROSS_ROLLING, zoh_discretize
+from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, JointBatch, VELOCITY
 from youbot_fdi.naming import wheel_suffix
 
@@ -302,10 +302,6 @@ class ModelObserver:
         self.signed_effort = drive.signed_effort
         #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
         self._load = (np.zeros(2 * self.n), 1.0)
-        self.dynamics, self.kinematics = dyn, model.kinematics
-        #: the rollers' drag in full per unit D_r, |cos(gamma)| (n,) [-] (0: omni wheels, none)
-        self._drag_size = np.where(np.abs(dyn.drag_projection) > ACROSS_ROLLING,
-                                   np.abs(dyn.drag_projection), 0.0)
         #: smoothed [drag part; glide share] per wheel and the shared drag [N·m]; outlives gaps
         self._drag = (np.zeros(2 * self.n), 0.0)
         #: beyond this slip speed the wheels slip as calibration never saw [rad/s]
@@ -727,10 +723,10 @@ class ModelObserver:
         reading +0.7 and two -0.7 of their bounds in a slightly diagonal drive on a floor x2.5;
         the load factor, a median over the two clusters, read neither. Omni wheels have no
         pattern: not called."""
-        n = self.n
-        shape = self.dynamics.roller_drag_shape(mean_speed)
-        votes = np.abs(shape) >= DRAG_GLIDE_SHARE * self._drag_size  # gliding
-        least = DRAG_GLIDE_SHARE ** 2 * self._drag_size  # see ``voters`` below
+        n, dyn = self.n, self.model.dynamics
+        shape = dyn.roller_drag_shape(mean_speed)
+        votes = np.abs(shape) >= DRAG_GLIDE_SHARE * dyn.drag_share  # gliding
+        least = DRAG_GLIDE_SHARE ** 2 * dyn.drag_share  # see ``voters`` below
         before, held = self._drag
         if (len(keep) == 1 and not votes.any()
                 and np.count_nonzero(before[n:] >= least) < min(MIN_LOAD_VOTES, n)):
@@ -740,7 +736,7 @@ class ModelObserver:
             return held * shape
         if votes.any():  # and near-steady, known, rigid (a straight drive glides nowhere)
             votes &= ((np.abs(inertial) <= np.abs(friction)) & np.isfinite(residual)
-                      & (self.kinematics.slip_speed(velocity) <= self.slip_limit)[:, None])
+                      & (self.model.kinematics.slip_speed(velocity) <= self.slip_limit)[:, None])
         parts = np.concatenate([np.where(votes, residual * np.sign(shape), 0.0),
                                 np.where(votes, np.abs(shape), 0.0)], axis=1)
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * parts, before)
@@ -751,7 +747,7 @@ class ModelObserver:
         ratio = np.where(voters, smoothed[:, :n] / np.where(voters, share, 1.0), np.nan)
         voted = voters.sum(axis=1) >= min(MIN_LOAD_VOTES, n)
         shared = nan_median(np.where(voted[:, None], ratio, 0.0))
-        drag = np.maximum(last_true_value(voted, shared, held), -self.dynamics.parameters.roller_drag)
+        drag = np.maximum(last_true_value(voted, shared, held), -dyn.parameters.roller_drag)
         self._drag = (smoothed[-1], float(drag[-1]))
         return drag[:, None] * shape
 
@@ -814,7 +810,7 @@ class ModelObserver:
         shared, voted = self._load_factor(smoothed, self._load[1])
         load = last_true_value(voted, shared, self._load[1])
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
-        if self._drag_size.any() and s.shared_drag:  # mecanum rollers (omni: no drag pattern)
+        if s.shared_drag and self.model.dynamics.drag_share.any():  # mecanum (omni: no pattern)
             drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
                                      mean_torque - explained - (load[:, None] - 1.0) * friction,
                                      explained - friction, friction, keep)

@@ -137,9 +137,11 @@ class WheelDynamics:
         #: none for an omni wheel (rollers across the rolling direction), 0.71 in size for a
         #: mecanum one
         self.drag_projection = -np.cos([wheel.roller_angle for wheel in kinematics.platform.wheels])
+        #: the size of that share (n,) [-], 0 where the rollers run across (an omni wheel)
+        self.drag_share = np.where(np.abs(self.drag_projection) > ACROSS_ROLLING,
+                                   np.abs(self.drag_projection), 0.0)
         #: the rollers' drag acts (``roller_drag`` > 0 on wheels whose motors feel it)
-        self.has_drag = (parameters.roller_drag > 0.0
-                         and bool(np.any(np.abs(self.drag_projection) > ACROSS_ROLLING)))
+        self.has_drag = parameters.roller_drag > 0.0 and bool(self.drag_share.any())
 
     def state_space(self, friction_matrix=None):
         """Continuous state space of eq. 3.22.
