@@ -12,7 +12,8 @@ from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.learned import mask_wheels
 from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, SPEED_NOISE_SIGMAS,
-                                      PRIOR_SETTINGS, ResidualEvaluator, ResidualFrame, bound_weights)
+                                      PRIOR_SETTINGS, ResidualBatch, ResidualEvaluator, ResidualFrame,
+                                      bound_weights)
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
 from youbot_fdi.model.firmware import slowest_time_constant
@@ -332,6 +333,39 @@ def test_evidence_that_drains_holds_no_new_alarm(model):
     # after 7 samples the first is under half the threshold (no longer up), the second still over
     assert 4 * 2.0 - 7 * 1.0 < 0.5 * threshold and 4 * 2.0 - 8 * 0.5 >= threshold
     assert n == 4 and events and events[0] == (12, model.wheel_names[1])
+
+
+def test_beside_another_wheels_alarm_only_a_clear_excess_is_a_second_fault(model):
+    """Wheel fl's command score 3 alarms at its second sample (evidence 2 a sample, threshold 3):
+    it does not do what it was told (a runaway). While that alarm is set, fr's torque score 2.5
+    (evidence 1.5 a sample, over the threshold at its second sample) is the excess a fault
+    elsewhere gives the wheels it drags: no alarm. Its score 3.5 (at least
+    ``second_fault_score``) is a second fault, found at once (the evidence it gathered is over
+    the threshold and grows). Row by row and in one batch alike; without fl's alarm the same 2.5
+    alarms at its second sample."""
+    s = replace(FdiSettings(), breakaway_time=0.0)
+    assert s.second_fault_score == 3.0 and s.evidence_cap == 3.0
+    assert s.family_thresholds[FAMILIES.index('torque')] == s.family_thresholds[FAMILIES.index('command')] == 3.0
+    plan = [(3.0, 0.0)] * 3 + [(3.0, 2.5)] * 10 + [(3.0, 3.5)] * 2
+
+    def frames(plan):
+        for k, (first, second) in enumerate(plan):
+            f = frame(model, 10.0 + 0.01 * k, 0.0)
+            yield replace(f, values=dict(f.values, command=np.array([first, 0.0, 0.0, 0.0]),
+                                         torque=np.array([0.0, second, 0.0, 0.0])))
+
+    def alarms(decision, plan):
+        return [(k, e.wheel) for k, f in enumerate(frames(plan)) for e in decision.update(f)
+                if e.level == 'ERROR']
+
+    fl, fr = model.wheel_names[:2]
+    assert alarms(DecisionMaker(model.wheel_names, s, load_residual_data()), plan) == [(1, fl), (13, fr)]
+    batched = DecisionMaker(model.wheel_names, s, load_residual_data())
+    events = batched.update_batch(ResidualBatch.of_frames(list(frames(plan))))
+    assert [(round((e.stamp - 10.0) / 0.01), e.wheel) for e in events if e.level == 'ERROR'] == [
+        (1, fl), (13, fr)]
+    alone = [(0.0, second) for _, second in plan]
+    assert alarms(DecisionMaker(model.wheel_names, s, load_residual_data()), alone)[0] == (4, fr)
 
 
 def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(model):

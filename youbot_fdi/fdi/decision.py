@@ -13,7 +13,9 @@
    drains away). Torque and command-path evidence on half the wheels or more at once (half the
    threshold each, rising within ``shared_window`` of each other) is a change they share, not a
    wheel fault; so is a modest excess (score below ``second_fault_score``) while other wheels'
-   evidence is up. A clear excess on a wheel that rose later is a second fault. A position
+   evidence is up, or beside another wheel's fault (its wheel fault alarm set, or cleared less
+   than ``heal_time`` ago: a faulty wheel drags the others off the model). A clear excess on a
+   wheel that rose later is a second fault. A position
    reading that repeats exactly while the wheel is commanded and measured to turn is direct
    evidence of a frozen sensor (``frozen_samples`` in a row), at any rate. While the base breaks
    away from rest (``breakaway_time`` after a sample in which every wheel stood) the torque
@@ -69,6 +71,7 @@ OK, WARN, ERROR = Level.OK, Level.WARN, Level.ERROR  # short names for this modu
 TORQUE, COMMAND, ENCODER = (FAMILIES.index(f) for f in ('torque', 'command', 'encoder'))
 #: Families judged against the other wheels, and the share of the threshold that counts as evidence.
 SHARED_FAMILIES = [TORQUE, COMMAND]
+WHEEL_FAULT_FAMILIES = [TORQUE, COMMAND, ENCODER]  # an alarm of these can name a wheel's fault
 SHARED_SHARE = 0.5
 LOAD_RELEASE = 0.5  # the load WARN ends below this share of ``load_warn`` (hysteresis) [-]
 AT_BOUND = 1.0  # the score |r| / u of a residual at its bound [-]
@@ -176,6 +179,7 @@ class DecisionMaker:
         self.range_level = OK  # of the learned correction's calibrated range (OK or WARN)
         self._outside_stamp = NEVER  # [s] of the last row outside that range
         self.alarm = np.zeros(shape, dtype=bool)
+        self._fault_stamp = np.full(self.n, NEVER)  # [s] of the last row with a wheel fault's alarm set
         self.components = {w: _Component() for w in self.wheel_names}
         self.components[BASE] = _Component()
         self.samples = 0
@@ -387,9 +391,11 @@ class DecisionMaker:
         its recent levels start afresh (:meth:`torque_shift`), as they do in the rows ``moved``
         (N,) (:meth:`operating_point_changes`).
 
-        The torque levels hold still for the wheels whose torque alarm is set (after the row
-        before), so the block is judged in parts within which no torque alarm changes: when one
-        changes, the rows after it are judged again from the state after that row.
+        The torque levels hold still for the wheels whose torque alarm is set, and a wheel's
+        torque and command evidence is judged as a second fault's beside another wheel's fault
+        (:meth:`_faults_elsewhere`; both after the row before), so the block is judged in parts
+        within which no alarm changes: when one changes, the rows after it are judged again from
+        the state after that row.
         """
         rows, start, parts = len(z), 0, []
         if breaking_away.any():
@@ -398,20 +404,22 @@ class DecisionMaker:
         fresh = breaking_away | moved
         judged = []
         while start < rows:
-            hold = self.alarm[TORQUE].copy()
+            state = self.alarm.copy()
             part = slice(start, rows)
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
-                                         torque_bound[part], torque_scale[part], hold,
-                                         fresh[part])
-            changes = np.flatnonzero((alarm[:-1, TORQUE] != hold).any(axis=1))
+                                         torque_bound[part], torque_scale[part], state[TORQUE],
+                                         fresh[part], self._faults_elsewhere(state, stamps[part]))
+            changes = np.flatnonzero((alarm[:-1] != state).any(axis=(1, 2)))
             if not len(changes):
                 parts.append(alarm)
                 judged.append(self._pass['judged'])
+                self._remember_faults(alarm, stamps[part])
                 break
             changed = int(changes[0])  # judged alike with the old hold up to here
             parts.append(alarm[:changed + 1])
             judged.append(self._pass['judged'][:changed + 1])
             self._rewind(changed)
+            self._remember_faults(alarm[:changed + 1], stamps[start:start + changed + 1])
             start += changed + 1
         if self.evidence_trace is not None:
             self.evidence_trace.append(np.concatenate(judged))
@@ -428,8 +436,29 @@ class DecisionMaker:
         self._rise[SHARED_FAMILIES] = states['rise'][row]
         self._below, self.alarm = states['below'][row], states['alarm'][row]
 
-    def _alarms_holding(self, z, excited, stamps, torque, torque_bound, torque_scale, hold, fresh):
-        """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout.
+    def _faults_elsewhere(self, alarm, stamps):
+        """Rows x wheels (N, n) at ``stamps`` (N,) [s] beside another wheel's fault: one whose
+        wheel fault alarm (torque, command or encoder: an observer alarm alone names no wheel's
+        fault) is set in ``alarm`` (families, n), or was less than ``heal_time`` ago (its episode
+        is published until then, youbot_fdi/fdi/lifecycle.py)."""
+        faulty = alarm[WHEEL_FAULT_FAMILIES].any(axis=0)
+        recent = faulty | (np.asarray(stamps, dtype=float)[:, None] - self._fault_stamp
+                           < self.settings.heal_time)
+        return recent.sum(axis=1, keepdims=True) - recent > 0
+
+    def _remember_faults(self, alarm, stamps):
+        """Keep the stamp of the last of the rows ``alarm`` (N, families, n) at ``stamps`` (N,)
+        [s] in which each wheel had a wheel fault's alarm set."""
+        faulty = alarm[:, WHEEL_FAULT_FAMILIES].any(axis=1)
+        if faulty.any():
+            self._fault_stamp = last_true_value(faulty, np.asarray(stamps, dtype=float),
+                                                self._fault_stamp)[-1]
+
+    def _alarms_holding(self, z, excited, stamps, torque, torque_bound, torque_scale, hold, fresh,
+                        elsewhere):
+        """:meth:`_alarms` with the torque levels of the wheels in ``hold`` (n,) held throughout,
+        each row's wheels in ``elsewhere`` (N, n) judged beside another wheel's fault
+        (:meth:`_shared`).
 
         Sequentially: an alarm is set where the evidence is at the threshold and grows, cleared
         once ``below`` (excited time since it last was at the threshold, each row's weighted time)
@@ -447,7 +476,7 @@ class DecisionMaker:
         self._pass['judged'] = evidence
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
-                                                 z[:, SHARED_FAMILIES], stamps)
+                                                 z[:, SHARED_FAMILIES], stamps, elsewhere)
         rows = len(over)
         growing = evidence > np.concatenate([before[None], evidence[:-1]])
         raised = over & growing
@@ -467,11 +496,13 @@ class DecisionMaker:
         self._below, self.alarm = below[-1], alarm[-1]
         return alarm
 
-    def _shared(self, before, evidence, z, stamps):
+    def _shared(self, before, evidence, z, stamps, elsewhere):
         """Rows x families x wheels (N, f, n) whose evidence is shared with the other wheels', from
         the evidence (N, f, n) and scores ``z`` (N, f, n); ``before`` (f, n) is the evidence before
-        the first row. Shared is evidence past ``SHARED_SHARE`` of the threshold on half the
-        wheels or more, when either
+        the first row. Shared is a wheel's evidence with a score below ``second_fault_score``
+        beside another wheel's fault (``elsewhere`` (N, n), :meth:`_faults_elsewhere`: a fault
+        elsewhere changes how the base moves, see below), and evidence past ``SHARED_SHARE`` of
+        the threshold on half the wheels or more, when either
 
         - it rose within ``shared_window`` of the rise on those wheels (a surface, load or timing
           change they share, until the load factor has caught up), or
@@ -482,9 +513,10 @@ class DecisionMaker:
         s = self.settings
         level = SHARED_SHARE  # of the threshold
         up = evidence >= level
+        beside = elsewhere[:, None, :] & (z < s.second_fault_score)
         if not up.any():  # nothing shared (nearly every live row): no rise, nothing to compare
             self._pass['rise'] = np.broadcast_to(self._rise[SHARED_FAMILIES], up.shape).copy()
-            return up
+            return beside
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
         rise = np.maximum(np.maximum.accumulate(rise, axis=0), self._rise[SHARED_FAMILIES])
@@ -494,7 +526,7 @@ class DecisionMaker:
                     & (np.abs(rise[..., :, None] - rise[..., None, :]) <= s.shared_window))
         rose_together = together.sum(axis=-1) * 2 >= self.n
         co_occurring = (up.sum(axis=-1) * 2 >= self.n)[..., None]
-        return rose_together | (co_occurring & (z < s.second_fault_score))
+        return rose_together | (co_occurring & (z < s.second_fault_score)) | beside
 
     def _load_events(self, stamps, factors):
         """WARN/OK events of the load condition over rows (stamps (N,), load factors (N,))."""
@@ -855,6 +887,7 @@ class DecisionMaker:
         self._operating_point = (np.zeros(self.n + 1), 0)
         self._below[:] = 0
         self.alarm[:] = False
+        self._fault_stamp[:] = NEVER
         self._rise[:] = NEVER
         return events, cleared
 
