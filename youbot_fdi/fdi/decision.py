@@ -442,13 +442,18 @@ class DecisionMaker:
         fault) is set in ``alarm`` (families, n), or was less than ``heal_time`` ago (its episode
         is published until then, youbot_fdi/fdi/lifecycle.py)."""
         faulty = alarm[WHEEL_FAULT_FAMILIES].any(axis=0)
-        recent = faulty | (np.asarray(stamps, dtype=float)[:, None] - self._fault_stamp
-                           < self.settings.heal_time)
+        stamps = np.asarray(stamps, dtype=float)
+        heal = self.settings.heal_time
+        if not faulty.any() and self._fault_stamp.max() <= stamps.min() - heal:
+            return np.zeros((len(stamps), self.n), dtype=bool)  # no fault to be beside (nearly always)
+        recent = faulty | (stamps[:, None] - self._fault_stamp < heal)
         return recent.sum(axis=1, keepdims=True) - recent > 0
 
     def _remember_faults(self, alarm, stamps):
         """Keep the stamp of the last of the rows ``alarm`` (N, families, n) at ``stamps`` (N,)
         [s] in which each wheel had a wheel fault's alarm set."""
+        if not alarm.any():  # no alarm at all (nearly always)
+            return
         faulty = alarm[:, WHEEL_FAULT_FAMILIES].any(axis=1)
         if faulty.any():
             self._fault_stamp = last_true_value(faulty, np.asarray(stamps, dtype=float),
@@ -513,10 +518,10 @@ class DecisionMaker:
         s = self.settings
         level = SHARED_SHARE  # of the threshold
         up = evidence >= level
-        beside = elsewhere[:, None, :] & (z < s.second_fault_score)
+        beside = elsewhere[:, None, :] & (z < s.second_fault_score) if elsewhere.any() else None
         if not up.any():  # nothing shared (nearly every live row): no rise, nothing to compare
             self._pass['rise'] = np.broadcast_to(self._rise[SHARED_FAMILIES], up.shape).copy()
-            return beside
+            return up if beside is None else beside
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
         rise = np.maximum(np.maximum.accumulate(rise, axis=0), self._rise[SHARED_FAMILIES])
@@ -526,7 +531,8 @@ class DecisionMaker:
                     & (np.abs(rise[..., :, None] - rise[..., None, :]) <= s.shared_window))
         rose_together = together.sum(axis=-1) * 2 >= self.n
         co_occurring = (up.sum(axis=-1) * 2 >= self.n)[..., None]
-        return rose_together | (co_occurring & (z < s.second_fault_score)) | beside
+        shared = rose_together | (co_occurring & (z < s.second_fault_score))
+        return shared if beside is None else shared | beside
 
     def _load_events(self, stamps, factors):
         """WARN/OK events of the load condition over rows (stamps (N,), load factors (N,))."""
@@ -574,10 +580,12 @@ class DecisionMaker:
         a torque or encoder alarm, a position frozen while moving (``position_frozen`` (N, n)
         counts), a wheel silent for ``data_timeout`` (``silent`` (N, n) [s]), or fewer than half
         the wheels off their command path."""
+        frozen = (position_frozen >= self.settings.frozen_samples).any(axis=1)
+        if not alarm.any():  # no alarm (nearly every row): a frozen position or a silent wheel
+            return frozen | self._silent(silent).any(axis=1)
         commands = alarm[:, COMMAND].sum(axis=1)
         return (alarm[:, TORQUE].any(axis=1) | alarm[:, ENCODER].any(axis=1)
-                | (position_frozen >= self.settings.frozen_samples).any(axis=1)
-                | self._silent(silent).any(axis=1)
+                | frozen | self._silent(silent).any(axis=1)
                 | ((commands > 0) & (commands * 2 < self.n)))
 
     def _silent(self, silent):

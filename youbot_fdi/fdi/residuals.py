@@ -782,7 +782,10 @@ class ResidualEvaluator:
         # current reached what calibration never saw (observer.py: the integral the measured
         # current implies is only a guess where the current limit acts, and the loop winds up
         # unseen).
-        started = last_true_value(restart[:, None] | mask_wheels(p.resynced, n), stamp, self._started)
+        if rows == 1 and not restart[0] and not p.resynced[0]:  # one row (the live path) starting none
+            started = self._started[None]
+        else:
+            started = last_true_value(restart[:, None] | mask_wheels(p.resynced, n), stamp, self._started)
         settling = stamp[:, None] - started < self._settling_limit(p.velocity_mode)
         command_r, command_u, velocity_f, effort_f = self._command_terms(
             velocity, torque, p.from_commands, p.commands_before,
