@@ -394,8 +394,8 @@ class DecisionMaker:
         The torque levels hold still for the wheels whose torque alarm is set, and a wheel's
         torque and command evidence is judged as a second fault's beside another wheel's fault
         (:meth:`_faults_elsewhere`; both after the row before), so the block is judged in parts
-        within which no alarm changes: when one changes, the rows after it are judged again from
-        the state after that row.
+        within which no torque, command or encoder alarm changes: when one changes, the rows
+        after it are judged again from the state after that row.
         """
         rows, start, parts = len(z), 0, []
         if breaking_away.any():
@@ -409,7 +409,9 @@ class DecisionMaker:
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
                                          torque_bound[part], torque_scale[part], state[TORQUE],
                                          fresh[part], self._faults_elsewhere(state, stamps[part]))
-            changes = np.flatnonzero((alarm[:-1] != state).any(axis=(1, 2)))
+            # (an observer alarm changes neither: it is no wheel fault's and holds no level)
+            changes = np.flatnonzero((alarm[:-1, WHEEL_FAULT_FAMILIES]
+                                      != state[WHEEL_FAULT_FAMILIES]).any(axis=(1, 2)))
             if not len(changes):
                 parts.append(alarm)
                 judged.append(self._pass['judged'])
