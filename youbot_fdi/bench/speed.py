@@ -279,19 +279,30 @@ def _replay_recordings(workdir, progress, seconds):
     return cases, identified
 
 
+#: ``youbot-fdi`` with the arguments after ``-c`` (its start and imports, as a user's shell runs it)
+COMMAND_LINE = ('import sys; from youbot_fdi.cli.main import main; sys.argv[0] = "youbot-fdi"; '
+                'sys.exit(main(sys.argv[1:]))')
+
+
+def _fresh_interpreter(code, *argv, quiet=False):
+    """A callable running Python ``code`` with the arguments ``argv`` in a fresh interpreter
+    (its output discarded, its errors too if ``quiet``); it raises if the run fails."""
+    import subprocess
+    import sys
+    return lambda: subprocess.run([sys.executable, '-c', code, *map(str, argv)], check=True,
+                                  stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL if quiet else None)
+
+
 def _command_line_times(path, params, workdir):
     """``youbot-fdi identify`` and ``youbot-fdi replay --params`` of one recording as a user runs
     them, each in a fresh interpreter (its start and imports included), best of
     ``IDENTIFY_REPEATS`` each: (identify [s], replay [s])."""
-    import subprocess
-    import sys
-
-    def run(*argv):
-        code = 'import sys; from youbot_fdi.cli.main import main; sys.exit(main(sys.argv[1:]))'
-        return lambda: subprocess.run([sys.executable, '-c', code, *map(str, argv)], check=True,
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    identify = _best_time(run('identify', '--output', workdir / 'command_line', path), IDENTIFY_REPEATS)
-    replay = _best_time(run('replay', '--params', params, '--events', workdir / 'events.jsonl', path),
+    identify = _best_time(_fresh_interpreter(COMMAND_LINE, 'identify', '--output',
+                                             workdir / 'command_line', path, quiet=True),
+                          IDENTIFY_REPEATS)
+    replay = _best_time(_fresh_interpreter(COMMAND_LINE, 'replay', '--params', params, '--events',
+                                           workdir / 'events.jsonl', path, quiet=True),
                         IDENTIFY_REPEATS)
     return identify, replay
 
@@ -375,15 +386,8 @@ def bench_replay(progress=print, seconds=REPLAY_DRIVE):
 
 def bench_start():
     """``youbot-fdi --help`` (a fresh interpreter) against ``python -c "import numpy"``."""
-    import subprocess
-    import sys
-
-    def run(code):
-        return lambda: subprocess.run([sys.executable, '-c', code], check=True,
-                                      stdout=subprocess.DEVNULL)
-    command = _best_time(run('import sys; from youbot_fdi.cli.main import main; '
-                             'sys.argv[0] = "youbot-fdi"; main(["--help"])'), START_REPEATS)
-    numpy = _best_time(run('import numpy'), START_REPEATS)
+    command = _best_time(_fresh_interpreter(COMMAND_LINE, '--help'), START_REPEATS)
+    numpy = _best_time(_fresh_interpreter('import numpy'), START_REPEATS)
     return BenchResult('command line: youbot-fdi --help', command, 's', 'python -c "import numpy"',
                        numpy, f'a fresh interpreter each; target <= {START_TARGET:g}x')
 

@@ -394,11 +394,11 @@ def _block(model, arrays):
     return joints, command_batch, np.searchsorted(command_batch.stamp, arrays.time, side='right')
 
 
-def own_settings(**values):
-    """FdiSettings (``values`` set) for identify's own runs of the FDI: without the online shared
-    drag. Calibration is the floor the model is fitted to, so what the physics misses there is the
-    learned corrections' and the bounds', not a change of floor."""
-    return FdiSettings(shared_drag=False, **values)
+def own_settings(settings=None, **values):
+    """``settings`` (default: FdiSettings()) with ``values`` set, for identify's own runs of the
+    FDI: without the online shared drag. Calibration is the floor the model is fitted to, so what
+    the physics misses there is the learned corrections' and the bounds', not a change of floor."""
+    return replace(FdiSettings() if settings is None else settings, shared_drag=False, **values)
 
 
 def run_generator(model, arrays, settings):
@@ -853,7 +853,7 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     false-alarm rate); ``source`` names the recording in the result.
     (:func:`youbot_fdi.app.recordings.identify_recording` reads a recording and calls this.)"""
     require_samples(len(arrays.time), source)
-    settings = replace(settings, shared_drag=False)  # as own_settings: calibration's own floor
+    settings = own_settings(settings)
     fit = fit_dynamics(arrays, prior_model, settings)
     dynamics, info = fit.parameters, fit.info
     interval = float(np.median(np.diff(arrays.time)))

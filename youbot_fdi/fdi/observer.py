@@ -304,6 +304,8 @@ class ModelObserver:
         self._load = (np.zeros(2 * self.n), 1.0)
         #: smoothed [drag part; glide share] per wheel and the shared drag [N·m]; outlives gaps
         self._drag = (np.zeros(2 * self.n), 0.0)
+        #: the shared drag is measured: asked for, and mecanum rollers (omni wheels: no pattern)
+        self._measures_drag = settings.shared_drag and bool(dyn.drag_share.any())
         #: beyond this slip speed the wheels slip as calibration never saw [rad/s]
         self.slip_limit = slip_limit(settings)
         self._last = None  # (stamp, velocity, signed torque) of the last sample
@@ -810,7 +812,7 @@ class ModelObserver:
         shared, voted = self._load_factor(smoothed, self._load[1])
         load = last_true_value(voted, shared, self._load[1])
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
-        if s.shared_drag and self.model.dynamics.drag_share.any():  # mecanum (omni: no pattern)
+        if self._measures_drag:
             drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
                                      mean_torque - explained - (load[:, None] - 1.0) * friction,
                                      explained - friction, friction, keep)
