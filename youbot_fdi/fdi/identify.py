@@ -50,12 +50,21 @@ from youbot_fdi.samples import CommandBatch, JointBatch
 
 SAVGOL_WINDOW = 9  # samples
 SAVGOL_ORDER = 2
+#: The dynamics fit's smoothing window grows until the acceleration's noise is at most this share
+#: of its spread (the inertias' errors-in-variables bias, :func:`smoothing_window`) [-] ...
+ATTENUATION_SHARE = 0.01
+#: ... by this factor per step (a search over windows, not a fine grid) [-]
+WINDOW_GROWTH = 1.25
+#: ... but keeps at least this share of the rows the shortest window keeps evenly sampled [-],
+KEPT_SHARE = 0.5
+#: ... and spans at most the time the shortest window spans at the youBot's 100 Hz [s].
+SMOOTHING_TIME = SAVGOL_WINDOW * 0.01
 #: The dynamics fit's first pass, which measures the noise, weighs the prior as if the noise
 #: were this share of the torque's spread: barely (the data decide), yet never singular.
 NOISE_PROBE = 1e-3
 #: Rows of residual autocorrelation the fit's covariance counts (correlation_inflation): the
 #: Savitzky-Golay window's reach several times over.
-INFLATION_LAGS = 8 * SAVGOL_WINDOW
+INFLATION_LAGS = 8  # smoothing windows
 #: A design column shorter than this share of the longest is scaled as if it had that length.
 COLUMN_FLOOR = 1e-9
 #: Consecutive stretches of a recording the dynamics fit's jackknife leaves out one at a time.
@@ -104,6 +113,9 @@ GAIN_EVALUATIONS = 60
 ROLLER_RATIOS = np.round(np.arange(0.0, 1.51, 0.125), 3)
 #: ... and keeps one above 0 only where it lowers the torque fit's squared error by this share.
 ROLLER_RATIO_MIN_GAIN = 0.05
+#: Coulomb steps this many times wider than the model's smoothing, refitted to state how much
+#: the parameters depend on the step's unknown width (a model-form uncertainty) [-].
+COULOMB_STEP_WIDTHS = (3.0, 10.0)
 
 
 class IdentificationError(FdiError):
@@ -138,23 +150,57 @@ def require_samples(count, source=''):
         raise IdentificationError(msg)
 
 
-def _smooth(values, dt, deriv=0):
-    """Savitzky-Golay smoothing (or derivative) along time; the window shrinks for short data."""
-    window = min(SAVGOL_WINDOW, len(values) if len(values) % 2 else len(values) - 1)
+def _smooth(values, dt, deriv=0, window=SAVGOL_WINDOW):
+    """Savitzky-Golay smoothing (or derivative) along time over ``window`` samples (odd); the
+    window shrinks for short data."""
+    window = min(window, len(values) if len(values) % 2 else len(values) - 1)
     return savgol_filter(values, window, SAVGOL_ORDER, deriv=deriv, delta=dt)
 
 
-def evenly_sampled(time, interval):
-    """Rows (k,) bool whose Savitzky-Golay window holds no interval longer than
+def smoothing_window(velocity, dt, noise):
+    """The Savitzky-Golay window (odd, samples, at least SAVGOL_WINDOW, spanning at most
+    SMOOTHING_TIME unless that is shorter) over which the speed
+    readings ``velocity`` (k, n) [rad/s], sampled every ``dt`` [s] with ``noise`` [rad/s]
+    (:func:`speed_noise`), give accelerations whose noise is at most ``ATTENUATION_SHARE`` of
+    their spread. Why: the inertias are the coefficients of the acceleration, and noise in a
+    regressor biases its coefficient towards zero by that share (errors in variables); a noisy
+    reading sampled fast, differentiated over a few samples, is mostly noise (inertia found at
+    a tenth of the truth at 500 Hz). The window's first-derivative filter (order 2, middle
+    sample) is the straight line's, whose noise gain is 1 / (dt sqrt(sum j^2)), j = -m..m.
+    The torque is smoothed alike, so the dynamics (linear in both) hold for the smoothed signals."""
+    finite = velocity[np.isfinite(velocity).all(axis=1)]
+    # never smoother in time than SMOOTHING_TIME: a faster rate buys a cleaner derivative over
+    # the same span, not a longer smoothing of the motion
+    half = SAVGOL_WINDOW // 2
+    most = min((len(finite) - 1) // 2, max(half, int(SMOOTHING_TIME / dt) // 2))
+    while half < most:
+        gain_squared = 3.0 / (dt ** 2 * half * (half + 1) * (2 * half + 1))
+        spread = float(np.var(savgol_filter(finite, 2 * half + 1, SAVGOL_ORDER, deriv=1, delta=dt)))
+        if noise ** 2 * gain_squared <= ATTENUATION_SHARE * spread:
+            break
+        half = max(half + 1, int(half * WINDOW_GROWTH))
+    return 2 * min(half, max(most, SAVGOL_WINDOW // 2)) + 1
+
+
+def evenly_sampled(time, interval, window=SAVGOL_WINDOW):
+    """Rows (k,) bool whose Savitzky-Golay ``window`` holds no interval longer than
     :data:`UNEVEN_INTERVAL` times the median ``interval`` [s]: the filter takes its rows as evenly
     spaced, so a window across a gap (a recording's pause, runs joined, a logger's stall) mixes
     speeds seconds apart into one "acceleration". Such rows are left out of the dynamics fit."""
     long = np.diff(time) > UNEVEN_INTERVAL * interval  # interval i lies between rows i and i + 1
-    half = SAVGOL_WINDOW // 2
+    half = window // 2
     # Row r's window spans intervals r - half .. r + half - 1.
     counts = np.convolve(np.concatenate([np.zeros(half), long, np.zeros(half)]),
                          np.ones(2 * half), mode='valid')
     return counts[:len(time)] == 0
+
+
+class FitRows(NamedTuple):
+    """What the dynamics fit's rows are: ``by_speed`` the samples from the slowest to the fastest
+    (the jackknife's regimes), ``correlation_lags`` how far the smoothing correlates them [rows]."""
+
+    by_speed: np.ndarray
+    correlation_lags: int
 
 
 class DynamicsFit(NamedTuple):
@@ -177,9 +223,17 @@ def fit_dynamics(arrays, model, settings=None):
         msg = 'the recording has no effort (measured current) on every sample; it is needed'
         raise IdentificationError(msg)
     dt = float(np.median(np.diff(arrays.time)))
-    acceleration = _smooth(arrays.velocity, dt, deriv=1)
-    speed, torque = _smooth(arrays.velocity, dt), _smooth(arrays.torque, dt)
-    keep = evenly_sampled(arrays.time, dt)
+    window = smoothing_window(arrays.velocity, dt, speed_noise(arrays))
+    keep = evenly_sampled(arrays.time, dt, window)
+    # A long window on a recording with dropped samples crosses a gap almost everywhere: it may
+    # not leave out more than KEPT_SHARE of the rows the shortest window keeps (noise in the
+    # acceleration traded for the recording's length), else it shrinks.
+    shortest = evenly_sampled(arrays.time, dt).sum()
+    while window > SAVGOL_WINDOW and keep.sum() < KEPT_SHARE * shortest:
+        window = max(SAVGOL_WINDOW, 2 * int(window / WINDOW_GROWTH / 2) + 1)
+        keep = evenly_sampled(arrays.time, dt, window)
+    acceleration = _smooth(arrays.velocity, dt, deriv=1, window=window)
+    speed, torque = _smooth(arrays.velocity, dt, window=window), _smooth(arrays.torque, dt, window=window)
     if keep.sum() >= MIN_SAMPLES:
         acceleration, speed, torque = acceleration[keep], speed[keep], torque[keep]
     forward = model.kinematics.forward_matrix
@@ -193,18 +247,49 @@ def fit_dynamics(arrays, model, settings=None):
     fit_drag = settings.fit_roller_drag
     known = 0.0 if fit_drag else model.dynamics.parameters.roller_drag * drag
     friction_signs = np.sign(speed).ravel()
+    rows = FitRows(np.argsort(np.abs(speed).mean(axis=1), kind='stable'), INFLATION_LAGS * window)
     inertial = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
-    fits = []
-    for ratio in ROLLER_RATIOS.tolist():
-        coulomb = sign * rolling_share(speed, slide, ratio) if ratio > 0.0 else sign
+    scale = model.dynamics.parameters.coulomb_velocity_scale
+
+    def fit_law(ratio, width=1.0):
+        """The fit with the contact law's roller friction ratio ``ratio`` and the Coulomb step
+        ``width`` times the model's: (squared error, ratio, params, info, fitted)."""
+        step = sign if width == 1.0 else np.tanh(speed / (width * scale))
+        coulomb = step * rolling_share(speed, slide, ratio) if ratio > 0.0 else step
         design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb)
                                  + ([drag] if fit_drag else []))
-        params, info, fitted, error = _fit_signed(design, torque, friction_signs, model, settings, known)
-        fits.append((error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted))
+        params, info, fitted, error = _fit_signed(design, torque, friction_signs, model, settings,
+                                                  known, rows)
+        return error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted
+
+    fits = [fit_law(ratio) for ratio in ROLLER_RATIOS.tolist()]
     physics = fits[0]
     best = min(fits, key=lambda fit: fit[0])
     chosen = best if best[0] < (1.0 - ROLLER_RATIO_MIN_GAIN) * physics[0] else physics
+    # The model's Coulomb step is a smoothing of a width it does not know: where the plant's
+    # friction grows over a wider range of speeds (rolling resistance building up, a Stribeck
+    # curve), the viscous and Coulomb terms share it differently. Where a wider step explains
+    # the torque as well (its squared error within ROLLER_RATIO_MIN_GAIN of the chosen fit's,
+    # the margin by which a law counts as better) or better, the parameters' change is a
+    # model-form uncertainty the stated deviation includes; a step the data rule out adds none.
+    names = parameter_names(model.dynamics.n_wheels, fit_drag)
+    values = _parameter_values(chosen[2], fit_drag)
+    form = np.zeros(len(names))
+    for width in COULOMB_STEP_WIDTHS:
+        wider = fit_law(chosen[1], width)
+        if wider[0] <= (1.0 + ROLLER_RATIO_MIN_GAIN) * chosen[0]:
+            form = np.maximum(form, np.abs(_parameter_values(wider[2], fit_drag) - values))
+    info = chosen[3]
+    info['uncertainty'] = {name: max(info['uncertainty'][name], float(f)) for name, f in zip(names, form)}
+    info['uncertainty_law'] = {name: float(f) for name, f in zip(names, form)}
     return DynamicsFit(chosen[2], {**chosen[3], 'roller_friction_ratio': chosen[1]}, chosen[4])
+
+
+def _parameter_values(params, roller_drag=False):
+    """The values of :func:`parameter_names` from DynamicParameters ``params``, (k,)."""
+    return np.array([params.mass, params.yaw_inertia, float(np.mean(params.wheel_inertia)),
+                     *params.viscous_friction, *params.coulomb_friction,
+                     *([params.roller_drag] if roller_drag else [])], dtype=float)
 
 
 def _per_wheel_columns(law):
@@ -218,20 +303,21 @@ def _per_wheel_columns(law):
     return out
 
 
-def _fit_signed(design, torque, friction_signs, model, settings, known=0.0):
+def _fit_signed(design, torque, friction_signs, model, settings, known=0.0, rows=None):
     """:func:`_solve_dynamics` of ``torque`` (k, n) less the ``known`` torque (raveled, or 0: a
     term held at its prior value); a magnitude-only effort is signed by the friction first
-    (``friction_signs``, the speeds' signs, raveled), then by each fit's explained torque.
+    (``friction_signs``, the speeds' signs, raveled), then by each fit's explained torque;
+    ``rows`` (:class:`FitRows`) what the rows are (default: unsmoothed, in time order).
     Returns (params, info, fitted, squared error)."""
     n = torque.shape[1]
     if model.drive.signed_effort:
         target = torque.ravel() - known
-        params, info, fitted = _solve_dynamics(design, target, model, n, settings)
+        params, info, fitted = _solve_dynamics(design, target, model, n, settings, rows)
     else:
         signs = friction_signs
         for _ in range(SIGN_REFITS):
             target = np.abs(torque).ravel() * signs - known
-            params, info, fitted = _solve_dynamics(design, target, model, n, settings)
+            params, info, fitted = _solve_dynamics(design, target, model, n, settings, rows)
             signs = np.sign(fitted + known)
     return params, info, fitted, float(np.sum((target - fitted) ** 2))
 
@@ -278,7 +364,7 @@ def correlation_inflation(residual, lags):
     return max(1.0, 1.0 + 2.0 * total)
 
 
-def _solve_dynamics(design, target, model, n, settings):
+def _solve_dynamics(design, target, model, n, settings, rows=None):
     """Bayesian least squares of ``design @ p = target`` with the Gaussian prior of
     :func:`prior_spread`, parameters bounded at 0: a fit with the prior barely weighted gives the
     noise (its residual's variance, times :func:`correlation_inflation`), then the fit weighs data
@@ -319,20 +405,23 @@ def _solve_dynamics(design, target, model, n, settings):
         return scipy.optimize.lsq_linear(factor.T, reduced, bounds=(lower * column_scale, np.inf),
                                          method='bvls').x / column_scale
 
-    def jackknife(noise):
+    def jackknife(noise, order=None):
         """The delete-a-block jackknife's standard deviation of the (unbounded) fit: the
-        recording in JACKKNIFE_BLOCKS consecutive stretches of time, the fit without each (the
-        whole fit's normal equations less that block's), sqrt((B - 1) / B sum (p_b - mean)^2).
-        Where the model misses (a friction law unlike the plant's, a bias that changes with
-        speed) the recording's parts disagree by more than the noise says."""
-        rows = len(target) // n
-        blocks = min(JACKKNIFE_BLOCKS, rows)
-        edges = np.linspace(0, rows, blocks + 1).astype(int) * n
+        recording's samples in ``order`` (default: time) cut into JACKKNIFE_BLOCKS consecutive
+        parts, the fit without each (the whole fit's normal equations less that part's),
+        sqrt((B - 1) / B sum (p_b - mean)^2). Where the model misses (a friction law unlike the
+        plant's, a bias that changes with speed) the recording's parts disagree by more than
+        the noise says."""
+        count = len(target) // n
+        blocks = min(JACKKNIFE_BLOCKS, count)
+        edges = np.linspace(0, count, blocks + 1).astype(int)
+        samples = np.arange(count) if order is None else order
         fits = []
         for start, stop in zip(edges[:-1], edges[1:]):
-            part = scaled[start:stop]
+            pick = (samples[start:stop, None] * n + np.arange(n)).ravel()
+            part = scaled[pick]
             normal, rhs = normal_equations(noise, gram - part.T @ part,
-                                           moment - part.T @ target[start:stop])
+                                           moment - part.T @ target[pick])
             fits.append(np.linalg.solve(normal, rhs) / column_scale)
         fits = np.array(fits)
         return np.sqrt((blocks - 1) / blocks * np.sum((fits - fits.mean(axis=0)) ** 2, axis=0))
@@ -343,7 +432,8 @@ def _solve_dynamics(design, target, model, n, settings):
     floor = NOISE_PROBE * max(float(np.std(target)), 1e-12)
     rough = design @ solve(*normal_equations(floor))
     residual = (target - rough).reshape(-1, n)
-    inflation = correlation_inflation(residual, INFLATION_LAGS)
+    inflation = correlation_inflation(residual, INFLATION_LAGS * SAVGOL_WINDOW if rows is None
+                                      else rows.correlation_lags)
     noise = max(math.sqrt(float(np.mean(residual ** 2)) * inflation), floor)
     normal, rhs = normal_equations(noise)
     solution = solve(normal, rhs)
@@ -357,7 +447,12 @@ def _solve_dynamics(design, target, model, n, settings):
     # what the recording's parts disagree by, too (a model that misses, not noise).
     unexcited = [name for name, sd, wide in zip(names, posterior, spread)
                  if sd > settings.excitation_share * wide]
+    # Parts in time disagree where the drive changes; parts by speed where the friction law is
+    # not the plant's: a recording that drives alike throughout shows a wrong law only there
+    # (the viscous and Coulomb terms trade off differently at each speed).
     deviation = np.maximum(posterior, jackknife(noise))
+    if rows is not None:
+        deviation = np.maximum(deviation, jackknife(noise, rows.by_speed))
     r_squared = 1.0 - np.sum((target - fitted) ** 2) / max(np.sum((target - target.mean()) ** 2), 1e-12)
     params = replace(prior, mass=float(solution[0]), yaw_inertia=float(solution[1]),
                      wheel_inertia=(float(solution[2]),) * n,
