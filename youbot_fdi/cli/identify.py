@@ -90,6 +90,12 @@ def run(args):
     if 'roller_drag' in sd or dyn.roller_drag > 0:
         print(f'  rollers\' drag the motors feel [N·m]: {value("roller_drag", dyn.roller_drag, ".4f")}'
               + ('' if 'roller_drag' in sd else ' (the profile\'s, not fitted: fit_roller_drag)'))
+    law, noise = result.info.get('uncertainty_law', {}), result.info.get('uncertainty_noise', {})
+    by_form = [name for name in law if law[name] > noise.get(name, 0.0)]
+    if by_form:
+        print(f'  the ± of {", ".join(by_form)} is mostly the friction law\'s form: a wider Coulomb '
+              'step or the rollers\' drag explains this recording as well and shares the friction '
+              'differently')
     unexcited = result.info.get('unexcited')
     if unexcited:
         print(f'  not excited by this recording (the data narrow them to no less than '

@@ -251,34 +251,39 @@ def fit_dynamics(arrays, model, settings=None):
     inertial = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
     scale = model.dynamics.parameters.coulomb_velocity_scale
 
-    def fit_law(ratio, width=1.0):
-        """The fit with the contact law's roller friction ratio ``ratio`` and the Coulomb step
-        ``width`` times the model's: (squared error, ratio, params, info, fitted)."""
+    def fit_law(ratio, width=1.0, with_drag=fit_drag):
+        """The fit with the contact law's roller friction ratio ``ratio``, the Coulomb step
+        ``width`` times the model's and the rollers' drag fitted or not: (squared error, ratio,
+        params, info, fitted)."""
         step = sign if width == 1.0 else np.tanh(speed / (width * scale))
         coulomb = step * rolling_share(speed, slide, ratio) if ratio > 0.0 else step
         design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb)
-                                 + ([drag] if fit_drag else []))
-        params, info, fitted, error = _fit_signed(design, torque, friction_signs, model, settings,
-                                                  known, rows)
+                                 + ([drag] if with_drag else []))
+        params, info, fitted, error = _fit_signed(
+            design, torque, friction_signs, model, replace(settings, fit_roller_drag=with_drag),
+            0.0 if with_drag else known, rows)
         return error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted
 
     fits = [fit_law(ratio) for ratio in ROLLER_RATIOS.tolist()]
     physics = fits[0]
     best = min(fits, key=lambda fit: fit[0])
     chosen = best if best[0] < (1.0 - ROLLER_RATIO_MIN_GAIN) * physics[0] else physics
-    # The model's Coulomb step is a smoothing of a width it does not know: where the plant's
-    # friction grows over a wider range of speeds (rolling resistance building up, a Stribeck
-    # curve), the viscous and Coulomb terms share it differently. Where a wider step explains
-    # the torque as well (its squared error within ROLLER_RATIO_MIN_GAIN of the chosen fit's,
-    # the margin by which a law counts as better) or better, the parameters' change is a
-    # model-form uncertainty the stated deviation includes; a step the data rule out adds none.
+    # Model form. The Coulomb step is a smoothing of a width the model does not know: where the
+    # plant's friction grows over a wider range of speeds (rolling resistance building up, a
+    # Stribeck curve), the viscous and Coulomb terms share it differently; and the rollers'
+    # drag (a term the model has, fitted only on request) takes a part of both where the base
+    # glides. Where such a fit explains the torque as well (its squared error within
+    # ROLLER_RATIO_MIN_GAIN of the chosen fit's, the margin by which a law counts as better) or
+    # better, the parameters' change is a model-form uncertainty the stated deviation includes;
+    # a law the data rule out adds none.
     names = parameter_names(model.dynamics.n_wheels, fit_drag)
     values = _parameter_values(chosen[2], fit_drag)
     form = np.zeros(len(names))
-    for width in COULOMB_STEP_WIDTHS:
-        wider = fit_law(chosen[1], width)
-        if wider[0] <= (1.0 + ROLLER_RATIO_MIN_GAIN) * chosen[0]:
-            form = np.maximum(form, np.abs(_parameter_values(wider[2], fit_drag) - values))
+    laws = [(width, with_drag) for width in (1.0, *COULOMB_STEP_WIDTHS) for with_drag in {fit_drag, True}
+            if (width, with_drag) != (1.0, fit_drag)]  # every other step and drag, not the chosen
+    for other in (fit_law(chosen[1], width, with_drag) for width, with_drag in laws):
+        if other[0] <= (1.0 + ROLLER_RATIO_MIN_GAIN) * chosen[0]:
+            form = np.maximum(form, np.abs(_parameter_values(other[2], fit_drag) - values))
     info = chosen[3]
     info['uncertainty'] = {name: max(info['uncertainty'][name], float(f)) for name, f in zip(names, form)}
     info['uncertainty_law'] = {name: float(f) for name, f in zip(names, form)}
