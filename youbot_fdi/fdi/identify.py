@@ -115,7 +115,7 @@ ROLLER_RATIOS = np.round(np.arange(0.0, 1.51, 0.125), 3)
 ROLLER_RATIO_MIN_GAIN = 0.05
 #: Coulomb steps this many times wider than the model's smoothing, refitted to state how much
 #: the parameters depend on the step's unknown width (a model-form uncertainty) [-].
-COULOMB_STEP_WIDTHS = (3.0, 10.0)
+COULOMB_STEP_WIDTHS = (10.0,)
 
 
 class IdentificationError(FdiError):
@@ -197,10 +197,13 @@ def evenly_sampled(time, interval, window=SAVGOL_WINDOW):
 
 class FitRows(NamedTuple):
     """What the dynamics fit's rows are: ``by_speed`` the samples from the slowest to the fastest
-    (the jackknife's regimes), ``correlation_lags`` how far the smoothing correlates them [rows]."""
+    (the jackknife's regimes), ``correlation_lags`` how far the smoothing correlates them [rows];
+    and whether the fit states the jackknives' deviations (``stated``: a fit only compared by its
+    error and values needs the posterior's alone)."""
 
     by_speed: np.ndarray
     correlation_lags: int
+    stated: bool = True
 
 
 class DynamicsFit(NamedTuple):
@@ -251,23 +254,24 @@ def fit_dynamics(arrays, model, settings=None):
     inertial = [(acceleration @ p_xy.T).ravel(), (acceleration @ p_z.T).ravel(), acceleration.ravel()]
     scale = model.dynamics.parameters.coulomb_velocity_scale
 
-    def fit_law(ratio, width=1.0, with_drag=fit_drag):
+    def fit_law(ratio, width=1.0, with_drag=fit_drag, stated=False):
         """The fit with the contact law's roller friction ratio ``ratio``, the Coulomb step
-        ``width`` times the model's and the rollers' drag fitted or not: (squared error, ratio,
-        params, info, fitted)."""
+        ``width`` times the model's and the rollers' drag fitted or not, with the jackknives'
+        deviations if ``stated``: (squared error, ratio, params, info, fitted)."""
         step = sign if width == 1.0 else np.tanh(speed / (width * scale))
         coulomb = step * rolling_share(speed, slide, ratio) if ratio > 0.0 else step
         design = np.column_stack(inertial + _per_wheel_columns(speed) + _per_wheel_columns(coulomb)
                                  + ([drag] if with_drag else []))
         params, info, fitted, error = _fit_signed(
             design, torque, friction_signs, model, replace(settings, fit_roller_drag=with_drag),
-            0.0 if with_drag else known, rows)
+            0.0 if with_drag else known, rows._replace(stated=stated))
         return error, ratio, replace(params, roller_friction_ratio=ratio), info, fitted
 
     fits = [fit_law(ratio) for ratio in ROLLER_RATIOS.tolist()]
     physics = fits[0]
     best = min(fits, key=lambda fit: fit[0])
     chosen = best if best[0] < (1.0 - ROLLER_RATIO_MIN_GAIN) * physics[0] else physics
+    chosen = fit_law(chosen[1], stated=True)  # the same fit, now with its deviations
     # Model form. The Coulomb step is a smoothing of a width the model does not know: where the
     # plant's friction grows over a wider range of speeds (rolling resistance building up, a
     # Stribeck curve), the viscous and Coulomb terms share it differently; and the rollers'
@@ -455,8 +459,10 @@ def _solve_dynamics(design, target, model, n, settings, rows=None):
     # Parts in time disagree where the drive changes; parts by speed where the friction law is
     # not the plant's: a recording that drives alike throughout shows a wrong law only there
     # (the viscous and Coulomb terms trade off differently at each speed).
-    deviation = np.maximum(posterior, jackknife(noise))
-    if rows is not None:
+    deviation = posterior
+    if rows is None or rows.stated:
+        deviation = np.maximum(deviation, jackknife(noise))
+    if rows is not None and rows.stated:
         deviation = np.maximum(deviation, jackknife(noise, rows.by_speed))
     r_squared = 1.0 - np.sum((target - fitted) ** 2) / max(np.sum((target - target.mean()) ** 2), 1e-12)
     params = replace(prior, mass=float(solution[0]), yaw_inertia=float(solution[1]),
