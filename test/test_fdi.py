@@ -221,6 +221,8 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
     assert profile.fdi['command_timeout'] == 0.25  # commands with every sample: the shim's watchdog
     assert "command watchdog: 0.25 s (the shim's)" in out
     assert profile.identification['friction_sweep']['rmse']
+    stated, law = profile.identification['uncertainty'], profile.identification['uncertainty_law']
+    assert set(law) == set(stated) and all(stated[name] >= law[name] >= 0.0 for name in law)
     assert (tmp_path / 'sweep.png').stat().st_size > 5_000
     # The identified parameters still detect and isolate, and stay quiet on nominal data.
     assert replay(recordings['nominal'].path, params) == []
