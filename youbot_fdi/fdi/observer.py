@@ -547,25 +547,28 @@ class ModelObserver:
         speed, integral = state[:n].tolist(), state[n:].tolist()
         goal = np.asarray(target, dtype=float).tolist()
         drift = (self._gamma1 @ friction).tolist()  # constant over the interval
-        period_map = self._period_map_rows
+        rows = list(zip(self._period_map_rows, drift))
+        mul = operator.mul
         clamped = False
         for _ in range(steps):
             joint = list(speed)  # [speed; current], one matrix product a period
-            for w in range(n):
-                error = goal[w] - speed[w]
+            held_now = []
+            for aim, now, held in zip(goal, speed, integral):
+                error = aim - now
                 # clamps written as comparisons: a NaN stays NaN, as in np.minimum/np.maximum
-                held = integral[w] + error * period
+                held = held + error * period
                 if not -limit < held < limit:
                     held = -limit if held <= -limit else limit if held >= limit else held
                     clamped = True
-                integral[w] = held
+                held_now.append(held)
                 current = kp * error + ki * held
                 if not -max_current < current < max_current:
                     current = (-max_current if current <= -max_current
                                else max_current if current >= max_current else current)
                     clamped = True
                 joint.append(current)
-            speed = [sum(map(operator.mul, row, joint)) - d for row, d in zip(period_map, drift)]
+            integral = held_now
+            speed = [sum(map(mul, row, joint)) - d for row, d in rows]
         return np.array(speed + integral), clamped
 
     def _command_step(self, state, steps, target, friction):
