@@ -114,11 +114,15 @@ def test_current_torque_and_motor_units_round_trip():
 
 
 # ---------------------------------------------------------------------- the contact friction law
-def _with_ratio(model, ratio):
+def _with_dynamics(model, **values):
+    """``model`` with its dynamics parameters ``values`` replaced."""
     from dataclasses import replace
     from youbot_fdi.model.profile import PlatformModel
-    dynamics = replace(model.profile.dynamics, roller_friction_ratio=ratio)
-    return PlatformModel(replace(model.profile, dynamics=dynamics))
+    return PlatformModel(replace(model.profile, dynamics=replace(model.profile.dynamics, **values)))
+
+
+def _with_ratio(model, ratio):
+    return _with_dynamics(model, roller_friction_ratio=ratio)
 
 
 def test_roller_slide_is_zero_for_a_rolling_contact_and_grows_with_its_angle():
@@ -197,11 +201,7 @@ def _youbot_drive(rotate, seconds=12.0, dt=0.01, noise=0.02, seed=3, model=None,
 
 def _with_coulomb(level):
     """The youBot profile with per-wheel Coulomb friction ``level`` [N·m]."""
-    from dataclasses import replace
-    from youbot_fdi.model.profile import PlatformModel
-    model = load_model('youbot')
-    return PlatformModel(replace(model.profile, dynamics=replace(model.profile.dynamics,
-                                                                 coulomb_friction=(level,) * 4)))
+    return _with_dynamics(load_model('youbot'), coulomb_friction=(level,) * 4)
 
 
 def test_a_noisy_fast_speed_reading_is_smoothed_until_its_acceleration_noise_is_a_small_share():
@@ -272,12 +272,9 @@ def test_the_rollers_drag_left_out_widens_the_stated_friction_deviation_where_it
     takes part of it (0.0405 against 0.035), by more than the noise says; the fit with the drag
     explains the torque better, and the change to it is in the stated deviation, which then
     puts the truth within two of it."""
-    from dataclasses import replace
     from youbot_fdi.fdi.identify import fit_dynamics
-    from youbot_fdi.model.profile import PlatformModel
     model = _with_coulomb(0.05)
-    dynamics = replace(model.profile.dynamics, roller_drag=0.1)
-    truth = PlatformModel(replace(model.profile, dynamics=dynamics)).dynamics
+    truth = _with_dynamics(model, roller_drag=0.1).dynamics
 
     def with_drag(speeds):
         return truth.coulomb_torque(speeds) + truth.roller_drag_torque(speeds)

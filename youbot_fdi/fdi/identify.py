@@ -197,12 +197,12 @@ def evenly_sampled(time, interval, window=SAVGOL_WINDOW):
 
 class FitRows(NamedTuple):
     """What the dynamics fit's rows are: ``by_speed`` the samples from the slowest to the fastest
-    (the jackknife's regimes), ``correlation_lags`` how far the smoothing correlates them [rows];
-    and whether the fit states the jackknives' deviations (``stated``: a fit only compared by its
-    error and values needs the posterior's alone)."""
+    (the jackknife's regimes; None: time's only), ``correlation_lags`` how far the smoothing
+    correlates them [rows]; and whether the fit states the jackknives' deviations (``stated``: a
+    fit only compared by its error and values needs the posterior's alone)."""
 
-    by_speed: np.ndarray
-    correlation_lags: int
+    by_speed: np.ndarray | None = None
+    correlation_lags: int = INFLATION_LAGS * SAVGOL_WINDOW
     stated: bool = True
 
 
@@ -288,10 +288,10 @@ def fit_dynamics(arrays, model, settings=None):
     for other in (fit_law(chosen[1], width, with_drag) for width, with_drag in laws):
         if other[0] <= (1.0 + ROLLER_RATIO_MIN_GAIN) * chosen[0]:
             form = np.maximum(form, np.abs(_parameter_values(other[2], fit_drag) - values))
-    info = chosen[3]
-    info['uncertainty'] = {name: max(info['uncertainty'][name], float(f)) for name, f in zip(names, form)}
-    info['uncertainty_law'] = {name: float(f) for name, f in zip(names, form)}
-    return DynamicsFit(chosen[2], {**chosen[3], 'roller_friction_ratio': chosen[1]}, chosen[4])
+    stated = {name: max(chosen[3]['uncertainty'][name], float(f)) for name, f in zip(names, form)}
+    return DynamicsFit(chosen[2], {**chosen[3], 'uncertainty': stated,
+                                   'uncertainty_law': {name: float(f) for name, f in zip(names, form)},
+                                   'roller_friction_ratio': chosen[1]}, chosen[4])
 
 
 def _parameter_values(params, roller_drag=False):
@@ -312,7 +312,7 @@ def _per_wheel_columns(law):
     return out
 
 
-def _fit_signed(design, torque, friction_signs, model, settings, known=0.0, rows=None):
+def _fit_signed(design, torque, friction_signs, model, settings, known=0.0, rows=FitRows()):
     """:func:`_solve_dynamics` of ``torque`` (k, n) less the ``known`` torque (raveled, or 0: a
     term held at its prior value); a magnitude-only effort is signed by the friction first
     (``friction_signs``, the speeds' signs, raveled), then by each fit's explained torque;
@@ -342,11 +342,9 @@ def prior_spread(prior, settings, n):
     """The prior's values and standard deviations in the fit's column order: each parameter
     ``prior_inertia_sd`` (mass, inertias) or ``prior_friction_sd`` (friction) times its prior
     value (a friction prior of 0 takes its family's largest, or 1: no knowledge)."""
-    drag = [prior.roller_drag] if settings.fit_roller_drag else []
-    values = np.array([prior.mass, prior.yaw_inertia, float(np.mean(prior.wheel_inertia)),
-                       *prior.viscous_friction, *prior.coulomb_friction, *drag], dtype=float)
+    values = _parameter_values(prior, settings.fit_roller_drag)
     relative = np.array([settings.prior_inertia_sd] * 3
-                        + [settings.prior_friction_sd] * (2 * n + len(drag)))
+                        + [settings.prior_friction_sd] * (len(values) - 3))
     scale = np.abs(values)
     # the rollers' drag is a Coulomb-like contact torque: a prior of 0 takes the Coulomb family's
     coulomb = slice(3 + n, None)
@@ -373,7 +371,7 @@ def correlation_inflation(residual, lags):
     return max(1.0, 1.0 + 2.0 * total)
 
 
-def _solve_dynamics(design, target, model, n, settings, rows=None):
+def _solve_dynamics(design, target, model, n, settings, rows=FitRows()):
     """Bayesian least squares of ``design @ p = target`` with the Gaussian prior of
     :func:`prior_spread`, parameters bounded at 0: a fit with the prior barely weighted gives the
     noise (its residual's variance, times :func:`correlation_inflation`), then the fit weighs data
@@ -441,8 +439,7 @@ def _solve_dynamics(design, target, model, n, settings, rows=None):
     floor = NOISE_PROBE * max(float(np.std(target)), 1e-12)
     rough = design @ solve(*normal_equations(floor))
     residual = (target - rough).reshape(-1, n)
-    inflation = correlation_inflation(residual, INFLATION_LAGS * SAVGOL_WINDOW if rows is None
-                                      else rows.correlation_lags)
+    inflation = correlation_inflation(residual, rows.correlation_lags)
     noise = max(math.sqrt(float(np.mean(residual ** 2)) * inflation), floor)
     normal, rhs = normal_equations(noise)
     solution = solve(normal, rhs)
@@ -460,10 +457,10 @@ def _solve_dynamics(design, target, model, n, settings, rows=None):
     # not the plant's: a recording that drives alike throughout shows a wrong law only there
     # (the viscous and Coulomb terms trade off differently at each speed).
     deviation = posterior
-    if rows is None or rows.stated:
+    if rows.stated:
         deviation = np.maximum(deviation, jackknife(noise))
-    if rows is not None and rows.stated:
-        deviation = np.maximum(deviation, jackknife(noise, rows.by_speed))
+        if rows.by_speed is not None:
+            deviation = np.maximum(deviation, jackknife(noise, rows.by_speed))
     r_squared = 1.0 - np.sum((target - fitted) ** 2) / max(np.sum((target - target.mean()) ** 2), 1e-12)
     params = replace(prior, mass=float(solution[0]), yaw_inertia=float(solution[1]),
                      wheel_inertia=(float(solution[2]),) * n,
