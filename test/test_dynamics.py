@@ -442,3 +442,48 @@ def test_identify_finds_the_rollers_drag_and_the_viscous_friction_it_would_bias(
     for j in range(model.dynamics.n_wheels):
         assert abs(informed.parameters.viscous_friction[j] - truth.viscous_friction[j]) <= \
             3.0 * informed.info['uncertainty'][f'viscous_friction[{j}]']
+
+
+def test_inertias_readings_taken_late_in_the_loops_answer_cannot_tell_span_the_prior():
+    """Readings at 16 Hz of a youBot whose velocity loop settles within 37 ms (the prior's, whose
+    inertias are 30 % above the truth: response_time_constant): commands sent at each reading's
+    instant reach the wheels just after it, the readings see 38 % of the loop's answer
+    (readings_seen_share), less than 1 - prior_inertia_sd: the stated deviations of mass and
+    inertias reach the prior's values, the values stay the fit's, and the fit says why. The same
+    drive with the commands half an interval later (89 % seen) states what the fit alone states."""
+    from dataclasses import replace
+    from youbot_fdi.fdi.identify import fit_dynamics, readings_seen_share
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model.firmware import response_time_constant
+    from youbot_fdi.model.profile import PlatformModel
+    from youbot_fdi.samples import CommandSample
+    settings, period = FdiSettings(), 0.0625
+    model, arrays = _youbot_drive(rotate=True, seconds=60.0, dt=period)
+    truth = model.dynamics.parameters
+    off = replace(truth, mass=1.3 * truth.mass, yaw_inertia=1.3 * truth.yaw_inertia,
+                   wheel_inertia=tuple(1.3 * w for w in truth.wheel_inertia))
+    prior = PlatformModel(replace(model.profile, dynamics=off))
+    tau = response_time_constant(prior.dynamics, prior.drive.torque_per_amp, prior.firmware)
+    assert 0.035 < tau < 0.04
+
+    def sent(delay):
+        return replace(arrays, commands=[CommandSample(float(t + delay), 'velocity', v)
+                                          for t, v in zip(arrays.time, arrays.velocity)])
+
+    plain = fit_dynamics(arrays, prior, settings)
+    assert plain.info['readings_seen_share'] is None and 'inertias_unseen' not in plain.info
+    late = fit_dynamics(sent(0.0), prior, settings)
+    share = readings_seen_share(arrays.time, sent(0.0).command_batch, tau)
+    assert late.info['readings_seen_share'] == pytest.approx(share, abs=1e-3)
+    assert share < 1.0 - settings.prior_inertia_sd
+    assert 'between them' in late.info['inertias_unseen']
+    assert late.parameters == plain.parameters
+    found = late.parameters
+    for name, value, before in (('mass', found.mass, off.mass),
+                                ('yaw_inertia', found.yaw_inertia, off.yaw_inertia),
+                                ('wheel_inertia', found.wheel_inertia[0], off.wheel_inertia[0])):
+        assert late.info['uncertainty'][name] >= abs(value - before) > 0.0
+    assert late.info['uncertainty']['viscous_friction[0]'] == plain.info['uncertainty']['viscous_friction[0]']
+    halfway = fit_dynamics(sent(period / 2), prior, settings)
+    assert halfway.info['readings_seen_share'] > 0.8 and 'inertias_unseen' not in halfway.info
+    assert halfway.info['uncertainty'] == plain.info['uncertainty']

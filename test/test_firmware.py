@@ -82,14 +82,14 @@ def test_bad_setpoints_and_mode_mixes_are_refused():
 
 
 @pytest.mark.parametrize('ki', [8.8, 2.0, 0.05, 0.0])
-def test_the_loops_slowest_time_constant_matches_its_characteristic_roots(ki):
+def test_the_loops_time_constants_match_its_characteristic_roots(ki):
     """With equal viscous friction b on every wheel the loop decouples along the mass matrix's
     eigenvectors: each mode of inertia m answers m s^2 + (b + k_t k_p) s + k_t k_i = 0 (without an
     integral gain: m s + b + k_t k_p = 0). The slowest time constant is 1 / the smallest decay rate
     of those roots, by hand."""
     from dataclasses import replace
 
-    from youbot_fdi.model import slowest_time_constant
+    from youbot_fdi.model import response_time_constant, slowest_time_constant
     from youbot_fdi.model.profile import PlatformModel
     youbot = load_model('youbot')
     b = 0.05
@@ -109,3 +109,7 @@ def test_the_loops_slowest_time_constant_matches_its_characteristic_roots(ki):
     got = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
     assert got == pytest.approx(expected, rel=1e-9)
     assert got > 0.5 if 0.0 < ki < 1.0 else got < 0.5  # a weak integral forgets slowly
+    # the answer to a step of the target fades with the proportional modes, whatever the integral
+    heaviest = float(np.max(np.linalg.eigvalsh(model.dynamics.mass_matrix)))
+    answer = response_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
+    assert answer == pytest.approx(heaviest / (b + kt * kp), rel=1e-9)

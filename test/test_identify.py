@@ -109,3 +109,38 @@ def test_a_driver_that_holds_its_last_command_is_told_from_one_with_a_watchdog()
     dense = recording(np.full(len(time), 2.0), every_sample)
     assert not commands_past_watchdog(dense, settings).any()
     assert not commands_held(model, dense, settings)
+
+
+def test_the_share_of_the_loops_answer_the_readings_see_follows_where_they_fall_in_it():
+    """Readings every T = 50 ms, a loop whose answer to a command fades within tau = 30 ms.
+    Commands changing at each reading's instant reach the wheels just after it: every reading is
+    T after the last change, and sees exp(-T / tau) of the answer, whose mean over time is
+    (tau / T)(1 - exp(-T / tau)); commands half an interval after each reading: exp(-T / 2 tau)
+    over the same mean (to the recording's last half interval). Commands repeating the value
+    they had are no change. Commands at random instants: the readings fall at every phase and
+    see the mean (share 1, to the sampling's noise). No velocity commands: nothing to judge."""
+    from youbot_fdi.fdi.identify import readings_seen_share
+    from youbot_fdi.samples import CommandBatch
+    period, tau = 0.05, 0.03
+    time = np.arange(0.0, 60.0, period)
+    mean = tau / period * -np.expm1(-period / tau)
+
+    def commands(stamps, values=None):
+        values = np.arange(len(stamps), dtype=float) if values is None else values
+        return CommandBatch(np.asarray(stamps), np.ones(len(stamps), dtype=bool),
+                            np.repeat(values[:, None], 4, axis=1))
+
+    aligned = readings_seen_share(time, commands(time), tau)
+    assert aligned == pytest.approx(np.exp(-period / tau) / mean, rel=1e-9)
+    assert aligned < 0.5
+    halfway = readings_seen_share(time, commands(time + period / 2), tau)
+    assert halfway == pytest.approx(np.exp(-period / (2 * tau)) / mean, rel=1e-3)
+    # the same changes, each command sent twice (again at the next reading's instant)
+    twice = np.repeat(np.arange(0, len(time), 2, dtype=float), 2)[:len(time)]
+    assert readings_seen_share(time, commands(time, twice), tau) == pytest.approx(
+        readings_seen_share(time, commands(time[::2]), tau), rel=1e-9)
+    rng = np.random.default_rng(1)
+    assert readings_seen_share(time, commands(np.sort(rng.uniform(0.0, 60.0, 800))), tau) == \
+        pytest.approx(1.0, abs=0.1)
+    effort = CommandBatch(time, np.zeros(len(time), dtype=bool), np.zeros((len(time), 4)))
+    assert np.isnan(readings_seen_share(time, effort, tau))

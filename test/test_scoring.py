@@ -106,3 +106,27 @@ def test_a_randomized_fault_that_never_showed_is_no_detection_case():
     assert '1 fault runs left out of detection' in text
     assert 'median 50 ms' in text and 'nan' not in text
     assert 'driven fault-free: 0.0 h' in text  # 2 x 9 s before the injection
+
+
+def test_the_plants_coulomb_friction_in_the_fdis_terms_is_its_bearings_and_rolling_resistance():
+    """A 20 kg plant with 0.03 N·m of bearing Coulomb friction, a rolling resistance of 0.5 mm
+    (a quarter of the weight on each wheel: 0.0005 x 9.81 x 20 / 4 = 0.024525 N·m) and a torque
+    constant 10 % above the datasheet's: the FDI, reading torque by the datasheet, sees
+    (0.03 + 0.024525) / 1.1 = 0.049568 N·m; the mass 20 / 1.1. The identification table compares
+    it: a found value 0.05 ± 0.001 is inside ± 2 sd (0.00043 off), one of 0.06 is not."""
+    from dataclasses import replace
+
+    import numpy as np
+    from youbot_fdi.bench import randomized
+    params = randomized.draw_plants(1, np.random.default_rng(0))
+    params = replace(params, mass=np.array([20.0]), torque_scale=np.array([1.1]),
+                     rolling_resistance=np.array([0.0005]), coulomb=np.full((1, 4), 0.03))
+    truth = randomized.truth_of(params, 0)
+    assert truth['coulomb_friction[2]'] == pytest.approx(0.054525 / 1.1, rel=1e-12)
+    assert truth['mass'] == pytest.approx(20.0 / 1.1, rel=1e-12)
+    found = {name: (value, 0.1 * value) for name, value in truth.items()}
+    found['coulomb_friction[0]'] = (0.05, 0.001)
+    found['coulomb_friction[1]'] = (0.06, 0.001)
+    table = randomized.identification_table(params, {0: {'found': found, 'unexcited': []}})
+    row = next(line for line in table.splitlines() if line.strip().startswith('coulomb_friction'))
+    assert row.split()[3] == '75%'  # three of the four wheels inside

@@ -101,6 +101,9 @@ def run(args):
         print(f'  not excited by this recording (the data narrow them to no less than '
               f'{settings.excitation_share:.0%} of their prior spread): {", ".join(unexcited)}; '
               'kept near the prior profile\'s values')
+    if result.info.get('inertias_unseen'):
+        print(f'  mass and inertias: {result.info["inertias_unseen"]}; their ± reaches the prior '
+              'profile\'s values')
     print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
           f'ki {profile.firmware.velocity_ki:.3g} A/rad')
     if 'input_delay' in result.fdi:

@@ -45,6 +45,7 @@ from youbot_fdi.fdi.residuals import (BOUND_TERMS, bound_weights, FAMILIES, Resi
                                       ResidualGenerator, ResidualSpread)
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.dynamics import rolling_share
+from youbot_fdi.model.firmware import response_time_constant
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
 from youbot_fdi.samples import CommandBatch, JointBatch
 
@@ -195,6 +196,38 @@ def evenly_sampled(time, interval, window=SAVGOL_WINDOW):
     return counts[:len(time)] == 0
 
 
+def readings_seen_share(time, commands, time_constant):
+    """How much of the velocity loop's response to its commands the torque readings see [-]: the
+    mean over the readings at ``time`` (k,) [s] of ``exp(-age / time_constant)``, ``age`` the
+    time since the commands (:class:`~youbot_fdi.samples.CommandBatch`, velocity mode) last
+    changed before the reading, over that mean over all time. The loop answers a change of its
+    target with a torque that fades within ``time_constant`` [s]
+    (:func:`~youbot_fdi.model.firmware.response_time_constant`): the wheels accelerate then.
+    1: the readings fall at any phase of that answer (their mean is the torque's mean); below 1:
+    they fall late in it (commands sent at each reading's instant reach the wheels just after it,
+    and a loop faster than the readings has settled before the next one: the acceleration's
+    torque happens between the readings, and inertias fitted to them come out low by about
+    ``1 - share``). nan: no velocity commands to judge by. The commands' input delay is not
+    known yet here; it only shifts the ages by a few milliseconds."""
+    velocity = commands.velocity_mode
+    stamps, values = commands.stamp[velocity], commands.values[velocity]
+    if len(stamps) == 0 or len(time) == 0:
+        return math.nan
+    changed = np.concatenate([[True], np.any(values[1:] != values[:-1], axis=1)])
+    changes = stamps[changed]
+    latest = np.searchsorted(changes, time, side='left') - 1  # the last change strictly before
+    judged = latest >= 0
+    if not judged.any() or time[-1] <= changes[0]:
+        return math.nan
+    seen = float(np.mean(np.exp(-(time[judged] - changes[latest[judged]]) / time_constant)))
+    # over all time from the first change to the last reading: each change's answer integrated
+    # until the next change
+    bounds = np.append(changes[changes < time[-1]], time[-1])
+    held = np.diff(bounds)
+    mean = float(np.sum(time_constant * -np.expm1(-held / time_constant)) / (time[-1] - changes[0]))
+    return seen / mean if mean > 0.0 else math.nan
+
+
 class FitRows(NamedTuple):
     """What the dynamics fit's rows are: ``by_speed`` the samples from the slowest to the fastest
     (the jackknife's regimes; None: time's only), ``correlation_lags`` how far the smoothing
@@ -289,9 +322,36 @@ def fit_dynamics(arrays, model, settings=None):
         if other[0] <= (1.0 + ROLLER_RATIO_MIN_GAIN) * chosen[0]:
             form = np.maximum(form, np.abs(_parameter_values(other[2], fit_drag) - values))
     stated = {name: max(chosen[3]['uncertainty'][name], float(f)) for name, f in zip(names, form)}
-    return DynamicsFit(chosen[2], {**chosen[3], 'uncertainty': stated,
-                                   'uncertainty_law': {name: float(f) for name, f in zip(names, form)},
-                                   'roller_friction_ratio': chosen[1]}, chosen[4])
+    info = {**chosen[3], 'uncertainty': stated,
+            'uncertainty_law': {name: float(f) for name, f in zip(names, form)},
+            'roller_friction_ratio': chosen[1]}
+    return DynamicsFit(chosen[2], _inertias_seen(chosen[2], info, arrays, model, settings), chosen[4])
+
+
+def _inertias_seen(params, info, arrays, model, settings):
+    """``info`` with the inertias' stated deviations widened to reach the prior where the torque
+    readings do not see the wheels accelerate (:func:`readings_seen_share`): their fitted values
+    are low by about ``1 - share``, and once that may exceed the prior's own relative spread
+    (``prior_inertia_sd``) the readings cannot tell the prior's value wrong: the deviation is at
+    least the distance between the two (``uncertainty_unseen``). The values stay the fit's: they
+    are what relates these readings to the speeds, which the FDI's predictions need."""
+    time_constant = response_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
+    share = readings_seen_share(arrays.time, arrays.command_batch, time_constant)
+    info = {**info, 'readings_seen_share': None if math.isnan(share) else round(share, 3)}
+    if not share < 1.0 - settings.prior_inertia_sd:
+        return info
+    prior = _parameter_values(model.dynamics.parameters)[:3]
+    found = _parameter_values(params)[:3]
+    unseen = {name: float(abs(p - f)) for name, p, f in zip(('mass', 'yaw_inertia', 'wheel_inertia'),
+                                                             prior, found)}
+    info['uncertainty'] = {name: max(sd, unseen.get(name, 0.0)) for name, sd in info['uncertainty'].items()}
+    info['uncertainty_unseen'] = unseen
+    info['inertias_unseen'] = (
+        f'the torque readings see {share:.0%} of the velocity loop\'s answer to its commands '
+        f'(it settles within {1000 * time_constant:.0f} ms; the readings come every '
+        f'{1000 * float(np.median(np.diff(arrays.time))):.0f} ms, late in it): the wheels accelerate '
+        'between them, and the inertias fitted to the readings come out low')
+    return info
 
 
 def _parameter_values(params, roller_drag=False):

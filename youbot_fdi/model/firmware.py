@@ -84,7 +84,22 @@ def slowest_time_constant(dynamics, torque_per_amp, firmware) -> float:
     integral acts on nothing: only the speed modes count. inf: a mode that never decays."""
     n = dynamics.n_wheels
     a_matrix, _ = velocity_loop_matrices(dynamics, torque_per_amp, firmware)
-    modes = a_matrix[n:, n:] if firmware.velocity_ki > 0.0 else a_matrix[n:2 * n, n:2 * n]
+    return _slowest(a_matrix[n:, n:] if firmware.velocity_ki > 0.0 else a_matrix[n:2 * n, n:2 * n])
+
+
+def response_time_constant(dynamics, torque_per_amp, firmware) -> float:
+    """The velocity loop's slowest proportional time constant [s]: 1 / the smallest decay rate of
+    its speed modes under the proportional gain and the friction alone
+    (:func:`velocity_loop_matrices` without the integral). How long the torque the loop applies
+    after a step of its target takes to fade by e: the step's acceleration happens within it (the
+    integral's slower mode takes up the friction, not the step). inf: a mode that never decays."""
+    n = dynamics.n_wheels
+    a_matrix, _ = velocity_loop_matrices(dynamics, torque_per_amp, firmware)
+    return _slowest(a_matrix[n:2 * n, n:2 * n])
+
+
+def _slowest(modes) -> float:
+    """1 / the smallest decay rate of the linear modes ``modes`` (square) [s]; inf: one never decays."""
     rate = float(np.min(-np.linalg.eigvals(modes).real))
     return 1.0 / rate if rate > 0.0 else float('inf')
 
