@@ -151,3 +151,41 @@ def test_the_trend_calls_a_change_only_where_the_stated_intervals_separate():
     assert trends['wide'].rate == pytest.approx(trends['narrow'].rate)
     assert not trends['wide'].flagged
     assert not trends['noisy'].flagged
+
+
+def test_an_unchanged_robots_recordings_overlap_and_call_no_change(tmp_path):
+    """Issue 34: four 30 s recordings of one unchanged plant (the fault benchmark's first random
+    variation: mass, inertias, friction and noise unlike the profile's), one a day, each on its
+    own drive. The fleet's identification (the profile as the prior) states every recording's
+    mass and per-wheel friction with a deviation: every two recordings' intervals (± 2 sd)
+    overlap, and the friction trends flag no wheel (robot_a's ramp above shows the same trend
+    code flag a wheel that changes)."""
+    import itertools
+    import math
+
+    from youbot_fdi.bench.simulated import _chain, make_variations, random_script, true_model
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.fleet.analysis import _identify_friction
+    from youbot_fdi.fleet.settings import FleetSettings
+    from youbot_fdi.fleet.trend import friction_trends, INTERVAL_SDS
+    prior = load_model('youbot')
+    variation = make_variations(2)[1]
+    plant = true_model(prior, variation)
+    rows = []
+    for day in range(4):
+        path = tmp_path / f'day{day}'
+        record_drive(path, plant, random_script(100 + day, 30.0),
+                     start_stamp=DEFAULT_START_STAMP + day * DAY, **_chain(variation))
+        found = _identify_friction(path, prior, math.inf, FdiSettings())
+        rows.append({'robot': 'unchanged', 'start': found['start'], 'wheels': prior.wheel_names,
+                     **{k: found[k] for k in ('friction', 'friction_sd', 'mass', 'mass_sd')}})
+    columns = [('mass', lambda r: (r['mass'], r['mass_sd']))]
+    columns += [(wheel, lambda r, j=j: (r['friction'][j], r['friction_sd'][j]))
+                for j, wheel in enumerate(prior.wheel_names)]
+    for name, read in columns:
+        for first, second in itertools.combinations(rows, 2):
+            (a, sd_a), (b, sd_b) = read(first), read(second)
+            assert abs(a - b) <= INTERVAL_SDS * (sd_a + sd_b), (name, a, sd_a, b, sd_b)
+    trends = friction_trends(rows, FleetSettings())
+    assert len(trends) == len(prior.wheel_names)
+    assert not any(t.flagged for t in trends)
