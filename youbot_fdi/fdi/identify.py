@@ -117,6 +117,8 @@ ROLLER_RATIO_MIN_GAIN = 0.05
 #: Coulomb steps this many times wider than the model's smoothing, refitted to state how much
 #: the parameters depend on the step's unknown width (a model-form uncertainty) [-].
 COULOMB_STEP_WIDTHS = (10.0,)
+#: The dynamics fit's first columns: mass, yaw inertia, wheel inertia (:func:`parameter_names`).
+INERTIAS = 3
 
 
 class IdentificationError(FdiError):
@@ -325,13 +327,15 @@ def fit_dynamics(arrays, model, settings=None):
     info = {**chosen[3], 'uncertainty': stated,
             'uncertainty_law': {name: float(f) for name, f in zip(names, form)},
             'roller_friction_ratio': chosen[1]}
-    return DynamicsFit(chosen[2], _inertias_seen(chosen[2], info, arrays, model, settings), chosen[4])
+    return DynamicsFit(chosen[2], _inertias_seen(info, values[:INERTIAS], arrays, dt, model, settings),
+                       chosen[4])
 
 
-def _inertias_seen(params, info, arrays, model, settings):
+def _inertias_seen(info, found, arrays, interval, model, settings):
     """``info`` with the inertias' stated deviations widened to reach the prior where the torque
-    readings do not see the wheels accelerate (:func:`readings_seen_share`): their fitted values
-    are low by about ``1 - share``, and once that may exceed the prior's own relative spread
+    readings, every ``interval`` [s], do not see the wheels accelerate
+    (:func:`readings_seen_share`): the fitted values ``found`` (mass, yaw and wheel inertia) are
+    low by about ``1 - share``, and once that may exceed the prior's own relative spread
     (``prior_inertia_sd``) the readings cannot tell the prior's value wrong: the deviation is at
     least the distance between the two (``uncertainty_unseen``). The values stay the fit's: they
     are what relates these readings to the speeds, which the FDI's predictions need."""
@@ -340,17 +344,16 @@ def _inertias_seen(params, info, arrays, model, settings):
     info = {**info, 'readings_seen_share': None if math.isnan(share) else round(share, 3)}
     if not share < 1.0 - settings.prior_inertia_sd:
         return info
-    prior = _parameter_values(model.dynamics.parameters)[:3]
-    found = _parameter_values(params)[:3]
-    unseen = {name: float(abs(p - f)) for name, p, f in zip(('mass', 'yaw_inertia', 'wheel_inertia'),
-                                                             prior, found)}
+    names = parameter_names(model.dynamics.n_wheels)[:INERTIAS]
+    prior = _parameter_values(model.dynamics.parameters)[:INERTIAS]
+    unseen = {name: float(abs(p - f)) for name, p, f in zip(names, prior, found)}
     info['uncertainty'] = {name: max(sd, unseen.get(name, 0.0)) for name, sd in info['uncertainty'].items()}
     info['uncertainty_unseen'] = unseen
     info['inertias_unseen'] = (
         f'the torque readings see {share:.0%} of the velocity loop\'s answer to its commands '
         f'(it settles within {1000 * time_constant:.0f} ms; the readings come every '
-        f'{1000 * float(np.median(np.diff(arrays.time))):.0f} ms, late in it): the wheels accelerate '
-        'between them, and the inertias fitted to the readings come out low')
+        f'{1000 * interval:.0f} ms, late in it): the wheels accelerate between them, and the '
+        'inertias fitted to the readings come out low')
     return info
 
 
@@ -403,8 +406,8 @@ def prior_spread(prior, settings, n):
     ``prior_inertia_sd`` (mass, inertias) or ``prior_friction_sd`` (friction) times its prior
     value (a friction prior of 0 takes its family's largest, or 1: no knowledge)."""
     values = _parameter_values(prior, settings.fit_roller_drag)
-    relative = np.array([settings.prior_inertia_sd] * 3
-                        + [settings.prior_friction_sd] * (len(values) - 3))
+    relative = np.array([settings.prior_inertia_sd] * INERTIAS
+                        + [settings.prior_friction_sd] * (len(values) - INERTIAS))
     scale = np.abs(values)
     # the rollers' drag is a Coulomb-like contact torque: a prior of 0 takes the Coulomb family's
     coulomb = slice(3 + n, None)
@@ -442,7 +445,7 @@ def _solve_dynamics(design, target, model, n, settings, rows=FitRows()):
     prior = model.dynamics.parameters
     values, spread = prior_spread(prior, settings, n)
     lower = np.zeros(design.shape[1])
-    lower[:3] = 1e-9
+    lower[:INERTIAS] = 1e-9
     norms = np.linalg.norm(design, axis=0)
     # Unknowns scaled by the column norms (conditioning), but a column that is zero to rounding
     # (no rotation in the drive: J_z's) is not blown up into a regressor of its rounding.
