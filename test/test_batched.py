@@ -19,9 +19,10 @@ from youbot_fdi.app.config import build_pipeline
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.app.config import load_residual_data, residual_data_for
 from youbot_fdi.fdi.pipeline import FdiPipeline
-from youbot_fdi.fdi.recursions import (NEVER, affine_recursion, bounded_cusum, cusum, decaying_peak,
-                                      last_true_value,
-                                      nan_median, run_lengths, scalar_recursion)
+from youbot_fdi.fdi.observer import shared_ratio
+from youbot_fdi.fdi.recursions import (NEVER, affine_recursion, bounded_cusum, clip_recursion, cusum,
+                                      decaying_peak, last_true_value, nan_median, run_lengths,
+                                      scalar_recursion)
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
 from youbot_fdi.samples import SampleMapper
 from youbot_fdi.model import load_model
@@ -348,6 +349,40 @@ def test_smoothing_and_cusums_equal_their_loops(rows, seed):
            'held': bounded_cusum(steps, start, ceiling).reshape(rows, -1)}
     for name, rows_expected in expected.items():
         np.testing.assert_allclose(got[name], rows_expected, rtol=1e-9, atol=1e-9, err_msg=name)
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 70), seed=st.integers(0, 2**32 - 1))
+def test_a_clip_recursion_equals_its_loop(rows, seed):
+    """``x_k = min(max(x_{k-1}, low_k), high_k)`` with rows that hold (-inf, inf), set (low =
+    high) or clip, by its loop: the same bits (a clip does no arithmetic)."""
+    rng = np.random.default_rng(seed)
+    ends = np.sort(rng.normal(size=(rows, 2)), axis=1)
+    kind = rng.integers(0, 3, rows)
+    low = np.where(kind == 0, -np.inf, ends[:, 0])
+    high = np.where(kind == 0, np.inf, np.where(kind == 1, ends[:, 0], ends[:, 1]))
+    x = start = float(rng.normal())
+    expected = []
+    for k in range(rows):
+        x = min(max(x, low[k]), high[k])
+        expected.append(x)
+    assert clip_recursion(low, high, start).tolist() == expected
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 40), wheels=st.integers(3, 5), seed=st.integers(0, 2**32 - 1))
+def test_the_shared_ratio_is_the_same_in_any_chunking(rows, wheels, seed):
+    """The ratio the wheels share (the load factor's and the rollers' drag's), rows with every
+    number of voters, equals its row-by-row loop bit for bit."""
+    rng = np.random.default_rng(seed)
+    ratio = rng.uniform(0.2, 3.0, size=(rows, wheels))
+    ratio[rng.random((rows, wheels)) < 0.45] = np.nan  # wheels that do not vote
+    whole = shared_ratio(ratio, 1.0, 0.0)
+    value, one_by_one = 1.0, []
+    for k in range(rows):
+        value = float(shared_ratio(ratio[k:k + 1], value, 0.0)[0])
+        one_by_one.append(value)
+    assert whole.tolist() == one_by_one
 
 
 @settings(max_examples=60, deadline=None)

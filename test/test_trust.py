@@ -280,14 +280,35 @@ def test_the_load_factor_follows_a_platform_change_of_any_size(model):
     observer = ModelObserver(model, FdiSettings())
     friction = np.full(4, 0.2)
 
-    def factor(ratios):
-        return observer._load_factor(np.concatenate([np.array(ratios) * friction, friction]), 1.0)
+    def factor(ratios, previous=1.0, voting=(True,) * 4):
+        votes = np.where(voting, friction, 0.0)
+        row = np.concatenate([np.array(ratios) * votes, votes])[None]
+        return float(observer._load_factor(row, previous)[0])
 
-    assert factor([3.2, 3.0, 3.4, 3.1])[0] == pytest.approx(3.15)
-    assert factor([5.0, 1.0, 1.0, 1.0])[0] == pytest.approx(1.0)
-    assert factor([3.3, 1.0, 3.3, 3.2])[0] == pytest.approx(3.25)
-    two_votes = np.concatenate([np.array([3.0, 3.0, 0.0, 0.0]) * friction, [0.2, 0.2, 0.0, 0.0]])
-    assert observer._load_factor(two_votes, 1.7) == (pytest.approx(1.0), False)  # kept: too few
+    assert factor([3.2, 3.0, 3.4, 3.1]) == pytest.approx(3.15)
+    assert factor([5.0, 1.0, 1.0, 1.0]) == pytest.approx(1.0)
+    assert factor([3.3, 1.0, 3.3, 3.2]) == pytest.approx(3.25)
+
+
+def test_two_voters_move_the_load_factor_as_far_as_both_agree(model):
+    """Where only two wheels vote (the others stand), the factor before stands in for the rest:
+    the median of the two and it. Both needing more moves it by the smaller change; one wheel alone
+    (a fault) does not move it; one voter holds it."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    observer = ModelObserver(model, FdiSettings())
+    friction = np.array([0.2, 0.2, 0.0, 0.0])  # two wheels stand: no friction level, no vote
+
+    def factor(ratios, previous):
+        return float(observer._load_factor(
+            np.concatenate([np.array(ratios + [0.0, 0.0]) * friction, friction])[None], previous)[0])
+
+    assert factor([2.1, 1.8], 1.0) == pytest.approx(1.8)  # both: the smaller change
+    assert factor([0.6, 0.7], 1.0) == pytest.approx(0.7)
+    assert factor([5.0, 1.05], 1.0) == pytest.approx(1.05)  # one wheel's fault: the other's
+    assert factor([5.0, 0.95], 1.0) == pytest.approx(1.0)  # either side of the last: held
+    assert factor([0.3, 1.0], 1.7) == pytest.approx(1.0)
+    one = np.concatenate([[0.6, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])[None]  # one voter at x3
+    assert float(observer._load_factor(one, 1.7)[0]) == pytest.approx(1.7)  # held
 
 
 def test_friction_beyond_the_calibrated_speeds_is_allowed_between_its_extrapolations(model):

@@ -128,7 +128,7 @@ def condition_changes(level: Level, enter: np.ndarray, leave: np.ndarray) -> lis
     of ``leave`` (N,) bool while WARN; returns [(row, new level)] in row order."""
     changes, k = [], 0
     while k < len(enter):
-        found = np.flatnonzero((enter if level == OK else leave)[k:])
+        found = (enter if level == OK else leave)[k:].nonzero()[0]
         if not len(found):
             break
         k += int(found[0])
@@ -287,9 +287,9 @@ class DecisionMaker:
         (...)."""
         s, n = self.settings, self.n
         speeds = means[..., :n]
-        allowance = (np.maximum(s.shift_operating_range * np.max(np.abs(speeds), axis=-1), s.stuck_speed)
+        allowance = (np.maximum(s.shift_operating_range * np.abs(speeds).max(axis=-1), s.stuck_speed)
                      + SPEED_NOISE_SIGMAS * s.speed_sigma)
-        return ((np.max(np.abs(points[..., :n] - speeds), axis=-1) > allowance)
+        return ((np.abs(points[..., :n] - speeds).max(axis=-1) > allowance)
                 | (np.abs(points[..., n] - means[..., n]) > s.shift_operating_range * means[..., n]))
 
     def sample_weights(self, stamps: np.ndarray) -> np.ndarray:
@@ -327,9 +327,9 @@ class DecisionMaker:
         alarm rate of the same increments, fdi/alarm_rate.py)."""
         s = self.settings
         w = np.asarray(weight, dtype=float)[:, None, None]
-        capped = np.clip(shift, -s.evidence_cap, s.evidence_cap)
+        capped = np.minimum(np.maximum(shift, -s.evidence_cap), s.evidence_cap)[:, None]  # clip
         return (w * (np.minimum(z, s.evidence_cap) - s.evidence_drift),
-                w * (np.stack([capped, -capped], axis=1) - s.shift_drift))
+                w * (np.concatenate([capped, -capped], axis=1) - s.shift_drift))
 
     def _judged(self, magnitude, shift):
         """The evidence in thresholds (..., families, n), an alarm from 1: the magnitude CUSUMs
@@ -372,7 +372,7 @@ class DecisionMaker:
         steady = ~fresh[:, None]  # rows that tell nothing of the level start it afresh
         judged = present & steady
         level_before, weight_before = self._level.advance(
-            memory[:, None] * precision * (judged & ~hold), np.clip(residual, -bound, bound),
+            memory[:, None] * precision * (judged & ~hold), np.minimum(np.maximum(residual, -bound), bound),
             keep=steady | hold)
         known = judged & (weight_before >= SHIFT_KNOWN_LEVEL)
         shift = np.divide(residual - level_before, scale, out=np.zeros_like(level_before),
@@ -409,9 +409,10 @@ class DecisionMaker:
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
                                          torque_bound[part], torque_scale[part], state[TORQUE],
                                          fresh[part], self._faults_elsewhere(state, stamps[part]))
-            # (an observer alarm changes neither: it is no wheel fault's and holds no level)
-            changes = np.flatnonzero((alarm[:-1, WHEEL_FAULT_FAMILIES]
-                                      != state[WHEEL_FAULT_FAMILIES]).any(axis=(1, 2)))
+            # (an observer alarm changes neither: it is no wheel fault's and holds no level; the
+            # last row's change has no rows after it: one row, the live path, has none)
+            changes = () if len(alarm) == 1 else np.flatnonzero(
+                (alarm[:-1, WHEEL_FAULT_FAMILIES] != state[WHEEL_FAULT_FAMILIES]).any(axis=(1, 2)))
             if not len(changes):
                 parts.append(alarm)
                 judged.append(self._pass['judged'])
@@ -443,11 +444,11 @@ class DecisionMaker:
         wheel fault alarm (torque, command or encoder: an observer alarm alone names no wheel's
         fault) is set in ``alarm`` (families, n), or was less than ``heal_time`` ago (its episode
         is published until then, youbot_fdi/fdi/lifecycle.py)."""
-        faulty = alarm[WHEEL_FAULT_FAMILIES].any(axis=0)
         stamps = np.asarray(stamps, dtype=float)
         heal = self.settings.heal_time
-        if not faulty.any() and self._fault_stamp.max() <= stamps.min() - heal:
+        if not alarm.any() and self._fault_stamp.max() <= stamps.min() - heal:
             return np.zeros((len(stamps), self.n), dtype=bool)  # no fault to be beside (nearly always)
+        faulty = alarm[WHEEL_FAULT_FAMILIES].any(axis=0)
         recent = faulty | (stamps[:, None] - self._fault_stamp < heal)
         return recent.sum(axis=1, keepdims=True) - recent > 0
 
@@ -485,7 +486,8 @@ class DecisionMaker:
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps, elsewhere)
         rows = len(over)
-        growing = evidence > np.concatenate([before[None], evidence[:-1]])
+        previous = before[None] if rows == 1 else np.concatenate([before[None], evidence[:-1]])
+        growing = evidence > previous
         raised = over & growing
         release = self.settings.release_time - STAMP_TOLERANCE  # summed steps round
         if rows == 1:  # the same latch, one row (the live path)
@@ -522,7 +524,7 @@ class DecisionMaker:
         up = evidence >= level
         beside = elsewhere[:, None, :] & (z < s.second_fault_score) if elsewhere.any() else None
         if not up.any():  # nothing shared (nearly every live row): no rise, nothing to compare
-            self._pass['rise'] = np.broadcast_to(self._rise[SHARED_FAMILIES], up.shape).copy()
+            self._pass['rise'] = self._rise[SHARED_FAMILIES][None].repeat(len(up), axis=0)
             return up if beside is None else beside
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
@@ -755,7 +757,7 @@ class DecisionMaker:
                              batch.values['torque'], batch.bounds['torque'], batch.torque_scale,
                              self._breaking_away(batch.velocity, batch.stamp),
                              self.operating_point_changes(batch.velocity, batch.load_factor))
-        capable = np.flatnonzero(self._can_diagnose(alarm, batch.position_frozen, batch.silent))
+        capable = self._can_diagnose(alarm, batch.position_frozen, batch.silent).nonzero()[0]
         frozen = self.settings.frozen_samples
         load_events = (self._load_events(batch.stamp, batch.load_factor)
                        + self._range_events(batch.stamp, batch.outside_calibration))
@@ -772,7 +774,7 @@ class DecisionMaker:
         final, events, k = self.alarm, [], 0
         while k < rows:
             if self._all_ok():
-                following = capable[np.searchsorted(capable, k):]
+                following = capable[capable.searchsorted(k):]
                 if not len(following):
                     break
                 k = int(following[0])
@@ -782,9 +784,9 @@ class DecisionMaker:
             events += found
             k += 1
             if not found and not self._used_scores and self._state() == before:
-                following = changed[np.searchsorted(changed, k):]
+                following = changed[changed.searchsorted(k):]
                 stop = int(following[0]) if len(following) else rows
-                due = int(np.searchsorted(batch.stamp, self._refinement_due() - STAMP_TOLERANCE))
+                due = int(batch.stamp.searchsorted(self._refinement_due() - STAMP_TOLERANCE))
                 k = max(k, min(stop, due))
         self._row, self.alarm = first + rows - 1, final
         if load_events:  # in stamp order with the wheels' (a stable sort keeps same-row order)
@@ -808,7 +810,7 @@ class DecisionMaker:
         the recent rows, dropping those older than ``classification_window`` before the oldest
         new one."""
         old_stamp = self._recent[0]
-        keep = int(np.searchsorted(old_stamp, stamp[0] - self.settings.classification_window))
+        keep = int(old_stamp.searchsorted(stamp[0] - self.settings.classification_window))
         self._recent = tuple(np.concatenate([old[keep:], new]) for old, new in
                              zip(self._recent, (stamp, residual, score, torque, velocity)))
         self._recent_first += keep

@@ -175,7 +175,7 @@ class EventLifecycle:
             # skip to the next row where something can happen
             due = min((self._due(e) for e in self.episodes.values()), default=math.inf)
             following = raw_events[k].stamp if k < len(raw_events) else math.inf
-            row = max(row + 1, int(np.searchsorted(stamps, min(due, following), side='left')))
+            row = max(row + 1, int(stamps.searchsorted(min(due, following), side='left')))
         for event in raw_events[k:]:  # stamped after the last row: taken, timed later
             self._take(event)
         return published

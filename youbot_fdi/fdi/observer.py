@@ -39,8 +39,8 @@ from typing import NamedTuple, TYPE_CHECKING
 import numpy as np
 
 from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mask
-from youbot_fdi.fdi.recursions import (affine_recursion, last_true_value, matvec, nan_median, shifted,
-                                       scalar_recursion)
+from youbot_fdi.fdi.recursions import (affine_recursion, clip_recursion, matvec, nan_median,
+                                       shifted, scalar_recursion)
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, JointBatch, VELOCITY
 from youbot_fdi.naming import wheel_suffix
@@ -95,6 +95,47 @@ def signed_torque(torque: np.ndarray, reference: np.ndarray, signed_effort: bool
     return torque if signed_effort else np.abs(torque) * np.sign(reference)
 
 
+def shared_ratio(ratio: np.ndarray, previous: float, least: float) -> np.ndarray:
+    """What the wheels share, per row (N,), from each wheel's ratio (N, n) (NaN: the wheel does
+    not vote), continuing from ``previous`` (the value before the first row, at least ``least``),
+    never below ``least``: the median of the voters where at least ``MIN_LOAD_VOTES`` vote (every
+    wheel of a smaller base); where one fewer vote, but two or more, the median of the voters and
+    the value before; else the value before.
+
+    Why the value before: a wheel that does not vote (it stands, or says nothing of this) tells
+    nothing new, so the last shared value stands in for it. The median of two voters and that
+    value moves only as far as both voters agree (the smaller of their changes, when they change
+    alike), and one wheel alone does not move it: a fault stays its wheel's, as in a median of
+    three wheels. On a three-wheel base driving where one wheel stands (every 60 degrees), only
+    two wheels vote, and a floor that both need more torque on was a fault of one of them."""
+    n = ratio.shape[-1]
+    needed = min(MIN_LOAD_VOTES, n)
+    if len(ratio) == 1:  # one row (the live path): the same values, in plain floats
+        known = sorted(v for v in ratio[0].tolist() if v == v)
+        count = len(known)
+        if count >= needed:
+            value = max((known[(count - 1) // 2] + known[count // 2]) / 2.0, least)
+        elif count == needed - 1 and count >= 2:
+            value = min(max(previous, max(known[0], least)), max(known[-1], least))
+        else:
+            value = previous
+        return np.array([value])
+    count = np.isfinite(ratio).sum(axis=-1)
+    full = count >= needed
+    median = np.maximum(nan_median(np.where(full[:, None], ratio, least)), least)
+    paired = (count == needed - 1) & (count >= 2)
+    with np.errstate(invalid='ignore'):  # rows without voters: NaN, not used
+        low = np.where(paired, np.maximum(np.fmin.reduce(ratio, axis=-1), least), least)
+        high = np.where(paired, np.maximum(np.fmax.reduce(ratio, axis=-1), least), np.inf)
+    return clip_recursion(np.where(full, median, low), np.where(full, median, high), previous)
+
+
+def voters_moving_the_share(n: int) -> int:
+    """The fewest voters that move :func:`shared_ratio` on a base of ``n`` wheels (two, the pair
+    with the value before; every wheel of a smaller base)."""
+    return MIN_LOAD_VOTES - 1 if n >= MIN_LOAD_VOTES else n
+
+
 def commands_in_force(command_stamps: np.ndarray, stamps: np.ndarray, input_delay: float,
                       command_timeout: float) -> tuple[np.ndarray, np.ndarray]:
     """The command in force at each sample stamped ``stamps`` (N,) [s] by the clock rule: the
@@ -102,7 +143,7 @@ def commands_in_force(command_stamps: np.ndarray, stamps: np.ndarray, input_dela
     ``input_delay`` [s]. Returns (its index (N,), -1 where there is none; expired (N,): none, or
     older than ``command_timeout`` [s], which the driver's watchdog turns into zero speed; an
     infinite one, a driver that holds its last command, leaves only "none")."""
-    index = np.searchsorted(command_stamps, stamps - input_delay, side='right') - 1
+    index = command_stamps.searchsorted(stamps - input_delay, side='right') - 1
     none = index < 0
     if not len(command_stamps):
         return index, none
@@ -463,8 +504,8 @@ class ModelObserver:
             self._commands_sorted = False  # sorted again when next used
         keep = max(len(known) + 1 - MAX_PENDING_COMMANDS, 0)
         self._known_commands = CommandBatch(
-            np.append(known.stamp[keep:], sample.stamp),
-            np.append(known.velocity_mode[keep:], sample.kind == VELOCITY),
+            np.concatenate([known.stamp[keep:], [sample.stamp]]),
+            np.concatenate([known.velocity_mode[keep:], [sample.kind == VELOCITY]]),
             np.concatenate([known.values[keep:], self.signs * np.asarray(sample.values, dtype=float)[None]]))
 
     def _commands_in_force(self, stamp, commands=None, commands_before=None):
@@ -494,7 +535,7 @@ class ModelObserver:
         if len(known):
             pick = np.maximum(index, 0)
             velocity_mode, values = known.velocity_mode[pick], known.values[pick]
-            newest = np.searchsorted(known.stamp, stamp, side='right') - 1
+            newest = known.stamp.searchsorted(stamp, side='right') - 1
             newest_pick = np.maximum(newest, 0)
             newer = (newest > index) & (known.velocity_mode[newest_pick] == velocity_mode)
         else:
@@ -642,9 +683,7 @@ class ModelObserver:
             loop_a, loop_b, loop_c = self._loop_step(steps)
             with np.errstate(over='ignore', invalid='ignore'):
                 linear = loop_a @ state + (target @ loop_b.T + friction @ loop_c.T)[0]
-        if not hold and velocity_mode:
-            with np.errstate(over='ignore', invalid='ignore'):
-                saturated = self._saturated(state[None], linear[None], target)[0]
+                saturated = velocity_mode and self._saturated(state[None], linear[None], target)[0]
             if saturated:
                 return self._command_step(state, steps, target[0], friction[0])[0]
         return linear
@@ -695,16 +734,15 @@ class ModelObserver:
         calibration's is shared as much as one ten percent off). A median of at least
         ``MIN_LOAD_VOTES`` wheels is moved by no single wheel (a fault stays that wheel's), and
         it follows what most wheels share where they do not all change alike (a floor that
-        triples the rolling wheels' friction and leaves a sliding one's); ``previous`` where
-        fewer wheels vote."""
+        triples the rolling wheels' friction and leaves a sliding one's); with two voters, as far
+        as both agree (:func:`shared_ratio`), from ``previous``. Rows (N,) of ``smoothed`` (N,
+        2n)."""
         n = self.n
         load, friction = smoothed[..., :n], smoothed[..., n:]
         votes = np.abs(friction) >= self.settings.torque_sigma
         ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
-        voted = votes.sum(axis=-1) >= min(MIN_LOAD_VOTES, n)
-        shared = nan_median(np.where(voted[..., None], ratio, 1.0))
         # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
-        return np.maximum(shared, 0.0), voted
+        return shared_ratio(ratio, previous, 0.0)
 
     def _shared_drag(self, velocity, mean_speed, residual, inertial, friction, keep):
         """The torque [N·m] (N, n) of the rollers' drag the floor adds beyond the model's: its
@@ -721,8 +759,8 @@ class ModelObserver:
         measured as the load factor is, from what the wheels share: each wheel whose contact
         glides (``DRAG_GLIDE_SHARE`` of the drag's tanh) votes, in near-steady driving and while
         the wheels fit a rigid motion (``slip_limit``: a slipping or faulty wheel drags the others
-        off the kinematics), with the ratio of its smoothed residual to the pattern; the median
-        of at least ``MIN_LOAD_VOTES`` voters is taken (a fault stays its wheel's), else the last.
+        off the kinematics), with the ratio of its smoothed residual to the pattern, shared as
+        the load factor's ratios are (:func:`shared_ratio`: a fault stays its wheel's).
         The drag dissipates: the model's drag and this one together are not negative. On the
         randomized suite the false torque alarms left had this pattern, two diagonal wheels
         reading +0.7 and two -0.7 of their bounds in a slightly diagonal drive on a floor x2.5;
@@ -734,7 +772,7 @@ class ModelObserver:
         least = DRAG_GLIDE_SHARE ** 2 * dyn.drag_share  # see ``voters`` below
         before, held = self._drag
         if (len(keep) == 1 and not votes.any()
-                and np.count_nonzero(before[n:] >= least) < min(MIN_LOAD_VOTES, n)):
+                and np.count_nonzero(before[n:] >= least) < voters_moving_the_share(n)):
             # One row (the live path) in which no wheel votes, after too few did: the smoothing
             # only fades and the drag is held, the arithmetic below without its median.
             self._drag = (keep[0] * before, held)
@@ -750,9 +788,7 @@ class ModelObserver:
         # throughout at the least gliding share has (the smoothing's memory, not one row)
         voters = share >= least
         ratio = np.where(voters, smoothed[:, :n] / np.where(voters, share, 1.0), np.nan)
-        voted = voters.sum(axis=1) >= min(MIN_LOAD_VOTES, n)
-        shared = nan_median(np.where(voted[:, None], ratio, 0.0))
-        drag = np.maximum(last_true_value(voted, shared, held), -dyn.parameters.roller_drag)
+        drag = shared_ratio(ratio, held, -dyn.parameters.roller_drag)
         self._drag = (smoothed[-1], float(drag[-1]))
         return drag[:, None] * shape
 
@@ -796,7 +832,8 @@ class ModelObserver:
         restart = ~((dt > 0.0) & (dt <= s.data_timeout))
         if first:
             restart[0] = True
-        if restart.any():  # nothing to count otherwise (the usual row)
+        restarts = bool(restart.any())  # none in the usual row
+        if restarts:
             self._count_restarts(dt[1:] if first else dt)
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
@@ -805,15 +842,14 @@ class ModelObserver:
             velocity, prev_velocity, phi, gamma_inv, step, torque,
             shifted(last_torque, torque))
         torque = signed_torque(torque, explained, self.signed_effort)
-        if not self.signed_effort and restart.any():  # as _restart signs it
+        if not self.signed_effort and restarts:  # as _restart signs it
             torque[restart] = signed_torque(torque[restart], velocity[restart], False)
         prev_torque = shifted(last_torque, torque)
         mean_torque = 0.5 * (torque + prev_torque)
         keep = self._smoothing(dt)
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
             self._load_votes(mean_torque, explained, friction), axis=1), self._load[0])
-        shared, voted = self._load_factor(smoothed, self._load[1])
-        load = last_true_value(voted, shared, self._load[1])
+        load = self._load_factor(smoothed, self._load[1])
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
         if self._measures_drag:
             drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
@@ -827,7 +863,8 @@ class ModelObserver:
         correction = step / s.observer_time_constant
         a = (1.0 - correction)[:, :, None] * phi
         b = (1.0 - correction) * forced + correction * velocity
-        a[restart], b[restart] = 0.0, velocity[restart]
+        if restarts:
+            a[restart], b[restart] = 0.0, velocity[restart]
         observer_before = self._observer
         observer = affine_recursion(a, b, observer_before)
         predicted = matvec(phi, shifted(observer_before, observer)) + forced

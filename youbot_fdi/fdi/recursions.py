@@ -147,7 +147,7 @@ def bounded_cusum(steps: np.ndarray, g0: np.ndarray, ceiling: float) -> np.ndarr
     Each row is the map ``g -> clip(g + a, lo, hi)``; two such maps compose into one of the same
     form, so the states are a prefix scan of compositions (log2(N) vectorised steps)."""
     if len(steps) == 1:
-        return np.clip(g0 + steps[0], 0.0, ceiling)[None]
+        return np.minimum(np.maximum(g0 + steps[0], 0.0), ceiling)[None]  # clip, for one row
     offset = np.array(steps, dtype=float)
     low, high = np.zeros_like(offset), np.full_like(offset, ceiling)
     shift = 1
@@ -160,6 +160,24 @@ def bounded_cusum(steps: np.ndarray, g0: np.ndarray, ceiling: float) -> np.ndarr
             offset[earlier] + offset[later])
         shift *= 2
     return np.clip(g0 + offset, low, high)
+
+
+def clip_recursion(low: np.ndarray, high: np.ndarray, x0: float) -> np.ndarray:
+    """States of ``x_k = min(max(x_{k-1}, low_k), high_k)`` (``low_k <= high_k``; -inf and inf
+    leave the state as it is, ``low_k == high_k`` sets it) over rows (N,) from ``x_{-1} = x0``;
+    returns (N,). Two such maps compose into one of the same form, so the states are a prefix
+    scan of compositions (log2(N) vectorised steps); a clip does no arithmetic, so any chunking
+    gives the same bits."""
+    if len(low) == 1:
+        return np.minimum(np.maximum(x0, low), high)
+    low, high = np.array(low, dtype=float), np.array(high, dtype=float)
+    shift = 1
+    while shift < len(low):  # row k after row k - shift: clip(clip(x, l1, h1), l2, h2)
+        later, earlier = slice(shift, None), slice(None, -shift)
+        low[later], high[later] = (np.minimum(np.maximum(low[earlier], low[later]), high[later]),
+                                   np.minimum(np.maximum(high[earlier], low[later]), high[later]))
+        shift *= 2
+    return np.minimum(np.maximum(x0, low), high)
 
 
 class ExponentialAverage:

@@ -121,6 +121,16 @@ def columns(*values: float | np.ndarray) -> np.ndarray:
     return out
 
 
+def by_family(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """The families' arrays ({family: (N, n)}) as one (N, families, n) in FAMILIES order
+    (``np.stack(..., axis=1)`` of float arrays, without its per-call cost on the live path)."""
+    first = arrays[FAMILIES[0]]
+    out = np.empty((len(first), len(FAMILIES)) + first.shape[1:])
+    for j, family in enumerate(FAMILIES):
+        out[:, j] = arrays[family]
+    return out
+
+
 def scores(values: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """|r| / u; 0 where a residual cannot be computed (NaN: no effort recorded), so it is silent."""
     z = np.abs(values) / bounds
@@ -296,8 +306,7 @@ class ResidualBatch:
 
     def scores(self):
         """|r| / u, shape (N, families, n); 0 where a residual cannot be computed (NaN)."""
-        return scores(np.stack([self.values[f] for f in FAMILIES], axis=1),
-                      np.stack([self.bounds[f] for f in FAMILIES], axis=1))
+        return scores(by_family(self.values), by_family(self.bounds))
 
     @classmethod
     def of_frames(cls, frames: Iterable[ResidualFrame]) -> ResidualBatch:
