@@ -57,7 +57,7 @@ from youbot_fdi.errors import ConfigError
 from youbot_fdi.faults import FaultKind, Level, LOAD_CHANGE, REFINABLE, UNSEEN_OPERATING_POINT
 from youbot_fdi.fdi.learned import masked_wheels
 from youbot_fdi.fdi.lifecycle import EventLifecycle, FAULT_CHANNEL, LifecycleSettings
-from youbot_fdi.fdi.recursions import (ExponentialAverage, NEVER, bounded_cusum, cusum,
+from youbot_fdi.fdi.recursions import (ExponentialAverage, NEVER, bounded_cusum, clip, cusum,
                                        last_true_value, shifted)
 from youbot_fdi.fdi.residuals import FAMILIES, SPEED_NOISE_SIGMAS, ResidualBatch
 from youbot_fdi.naming import wheel_suffix
@@ -327,7 +327,7 @@ class DecisionMaker:
         alarm rate of the same increments, fdi/alarm_rate.py)."""
         s = self.settings
         w = np.asarray(weight, dtype=float)[:, None, None]
-        capped = np.minimum(np.maximum(shift, -s.evidence_cap), s.evidence_cap)[:, None]  # clip
+        capped = clip(shift, -s.evidence_cap, s.evidence_cap)[:, None]
         return (w * (np.minimum(z, s.evidence_cap) - s.evidence_drift),
                 w * (np.concatenate([capped, -capped], axis=1) - s.shift_drift))
 
@@ -372,7 +372,7 @@ class DecisionMaker:
         steady = ~fresh[:, None]  # rows that tell nothing of the level start it afresh
         judged = present & steady
         level_before, weight_before = self._level.advance(
-            memory[:, None] * precision * (judged & ~hold), np.minimum(np.maximum(residual, -bound), bound),
+            memory[:, None] * precision * (judged & ~hold), clip(residual, -bound, bound),
             keep=steady | hold)
         known = judged & (weight_before >= SHIFT_KNOWN_LEVEL)
         shift = np.divide(residual - level_before, scale, out=np.zeros_like(level_before),

@@ -410,7 +410,7 @@ def prior_spread(prior, settings, n):
                         + [settings.prior_friction_sd] * (len(values) - INERTIAS))
     scale = np.abs(values)
     # the rollers' drag is a Coulomb-like contact torque: a prior of 0 takes the Coulomb family's
-    coulomb = slice(3 + n, None)
+    coulomb = slice(INERTIAS + n, None)
     for family in (slice(3, 3 + n), coulomb):
         scale[family] = np.where(scale[family] > 0.0, scale[family], scale[family].max() or 1.0)
     return values, relative * np.where(scale > 0.0, scale, 1.0)

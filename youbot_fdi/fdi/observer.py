@@ -40,7 +40,7 @@ import numpy as np
 
 from youbot_fdi.fdi.learned import inertial_feature, TorqueCorrection, wheel_mask
 from youbot_fdi.fdi.recursions import (affine_recursion, clip_recursion, matvec, nan_median,
-                                       shifted, scalar_recursion)
+                                       shifted, scalar_recursion, sorted_median)
 from youbot_fdi.model.dynamics import zoh_discretize
 from youbot_fdi.samples import CommandBatch, JointBatch, VELOCITY
 from youbot_fdi.naming import wheel_suffix
@@ -114,7 +114,7 @@ def shared_ratio(ratio: np.ndarray, previous: float, least: float) -> np.ndarray
         known = sorted(v for v in ratio[0].tolist() if v == v)
         count = len(known)
         if count >= needed:
-            value = max((known[(count - 1) // 2] + known[count // 2]) / 2.0, least)
+            value = max(sorted_median(known), least)
         elif count == needed - 1 and count >= 2:
             value = min(max(previous, max(known[0], least)), max(known[-1], least))
         else:

@@ -11,6 +11,12 @@ import numpy as np
 NEVER = -1e300
 
 
+def clip(values, low, high):
+    """``np.clip(values, low, high)`` (NaN stays NaN), without its dispatch, which costs a live
+    row of four wheels twice the arithmetic (1.7 against 0.8 µs)."""
+    return np.minimum(np.maximum(values, low), high)
+
+
 def shifted(first, rows: np.ndarray) -> np.ndarray:
     """Each of ``rows`` (N, ...) replaced by the one before it, ``first`` (...) before the first:
     ``concatenate([first[None], rows[:-1]])``; for one row a view of ``first`` (the live path).
@@ -94,14 +100,18 @@ def nan_median(values: np.ndarray) -> np.ndarray:
     width = values.shape[-1]
     if values.size == width:  # one row (the live path): the same median, in plain floats
         known = sorted(v for v in values.reshape(-1).tolist() if v == v)
-        count = len(known)
-        median = (known[(count - 1) // 2] + known[count // 2]) / 2.0 if count else np.nan
-        return np.array(median).reshape(values.shape[:-1])
+        return np.array(sorted_median(known)).reshape(values.shape[:-1])
     ordered = np.sort(values, axis=-1).reshape(-1, width)  # NaN sort last
     count = (~np.isnan(values)).sum(axis=-1).reshape(-1)
     rows = np.arange(len(count))
     low, high = ordered[rows, np.maximum((count - 1) // 2, 0)], ordered[rows, count // 2]
     return np.where(count > 0, (low + high) / 2.0, np.nan).reshape(values.shape[:-1])
+
+
+def sorted_median(known: list[float]) -> float:
+    """The median of the sorted floats ``known``, as :func:`nan_median` takes it; NaN for none."""
+    count = len(known)
+    return (known[(count - 1) // 2] + known[count // 2]) / 2.0 if count else np.nan
 
 
 def run_lengths(flags: np.ndarray, carry: np.ndarray, restart: np.ndarray | None = None) -> np.ndarray:
@@ -147,37 +157,37 @@ def bounded_cusum(steps: np.ndarray, g0: np.ndarray, ceiling: float) -> np.ndarr
     Each row is the map ``g -> clip(g + a, lo, hi)``; two such maps compose into one of the same
     form, so the states are a prefix scan of compositions (log2(N) vectorised steps)."""
     if len(steps) == 1:
-        return np.minimum(np.maximum(g0 + steps[0], 0.0), ceiling)[None]  # clip, for one row
+        return clip(g0 + steps[0], 0.0, ceiling)[None]
     offset = np.array(steps, dtype=float)
     low, high = np.zeros_like(offset), np.full_like(offset, ceiling)
+    _compose_clips(offset, low, high)
+    return clip(g0 + offset, low, high)
+
+
+def _compose_clips(offset: np.ndarray, low: np.ndarray, high: np.ndarray) -> None:
+    """Rows (N, ...) of maps ``g -> clip(g + offset_k, low_k, high_k)`` replaced, in place, by
+    their compositions from the first row to each (a prefix scan: log2(N) vectorised steps)."""
     shift = 1
     while shift < len(offset):  # row k after row k - shift: clip(clip(g + a1, l1, h1) + a2, l2, h2)
         later = slice(shift, None)
         earlier = slice(None, -shift)
         low[later], high[later], offset[later] = (
-            np.clip(low[earlier] + offset[later], low[later], high[later]),
-            np.clip(high[earlier] + offset[later], low[later], high[later]),
+            clip(low[earlier] + offset[later], low[later], high[later]),
+            clip(high[earlier] + offset[later], low[later], high[later]),
             offset[earlier] + offset[later])
         shift *= 2
-    return np.clip(g0 + offset, low, high)
 
 
 def clip_recursion(low: np.ndarray, high: np.ndarray, x0: float) -> np.ndarray:
     """States of ``x_k = min(max(x_{k-1}, low_k), high_k)`` (``low_k <= high_k``; -inf and inf
     leave the state as it is, ``low_k == high_k`` sets it) over rows (N,) from ``x_{-1} = x0``;
-    returns (N,). Two such maps compose into one of the same form, so the states are a prefix
-    scan of compositions (log2(N) vectorised steps); a clip does no arithmetic, so any chunking
-    gives the same bits."""
+    returns (N,). :func:`bounded_cusum`'s maps without the step, composed alike (a prefix scan);
+    a clip does no arithmetic, so any chunking gives the same bits."""
     if len(low) == 1:
-        return np.minimum(np.maximum(x0, low), high)
+        return clip(x0, low, high)
     low, high = np.array(low, dtype=float), np.array(high, dtype=float)
-    shift = 1
-    while shift < len(low):  # row k after row k - shift: clip(clip(x, l1, h1), l2, h2)
-        later, earlier = slice(shift, None), slice(None, -shift)
-        low[later], high[later] = (np.minimum(np.maximum(low[earlier], low[later]), high[later]),
-                                   np.minimum(np.maximum(high[earlier], low[later]), high[later]))
-        shift *= 2
-    return np.minimum(np.maximum(x0, low), high)
+    _compose_clips(np.zeros_like(low), low, high)  # no step: the offsets stay 0
+    return clip(x0, low, high)
 
 
 class ExponentialAverage:
