@@ -84,7 +84,13 @@ SHIFT_CEILING = 2.0
 #: A torque level is a reference once this share of its memory holds samples (``shift_time_constant``
 #: x ln 2 after the start or a gap): the first samples' mean is not yet the wheel's normal.
 SHIFT_KNOWN_LEVEL = 0.5
-OPERATING_BLOCK = 256  # rows searched at once for the next change of operating point
+#: Rows searched at once for the next change of operating point: from the first size, twice the
+#: rows to the last change after one, doubling up to the most while none is found (a search costs
+#: its block, and an aggressive drive changes its operating point every few dozen rows).
+OPERATING_BLOCK_FIRST, OPERATING_BLOCK_MOST = 16, 256
+#: Rows judged at once after an alarm changed what judges the rows after it (``_alarms``; a part
+#: costs its rows, which a change soon after judges again).
+REJUDGED_ROWS = 64
 BASE = None  # the component of faults not tied to one wheel
 BASE_NAME = 'base'  # how the base component is named for people
 STAMP_TOLERANCE = 1e-9  # [s] rounding allowance when a time condition is turned into a row index
@@ -262,19 +268,21 @@ class DecisionMaker:
         changes = np.zeros(len(points), dtype=bool)
         rows = np.flatnonzero(np.isfinite(points).all(axis=1))  # a wheel without a reading: skipped
         usable = points[rows]
-        k = 0
+        k, size = 0, OPERATING_BLOCK_FIRST
         while k < len(usable):
             if count == 0:
                 total, count, k = usable[k].copy(), 1, k + 1
                 continue
-            block = usable[k:k + OPERATING_BLOCK]  # (a search costs its block, not the rest)
+            block = usable[k:k + size]
             sums = total + np.cumsum(block, axis=0)
             means = np.concatenate([(total / count)[None],
                                     sums[:-1] / (count + np.arange(1, len(block)))[:, None]])
-            away = np.flatnonzero(self._away(block, means))
+            away = self._away(block, means).nonzero()[0]
             if not len(away):
                 total, count, k = sums[-1], count + len(block), k + len(block)
+                size = min(2 * size, OPERATING_BLOCK_MOST)
                 continue
+            size = min(max(2 * int(away[0]), OPERATING_BLOCK_FIRST), OPERATING_BLOCK_MOST)
             k += int(away[0])
             changes[rows[k]] = True
             total, count, k = usable[k].copy(), 1, k + 1
@@ -402,28 +410,36 @@ class DecisionMaker:
             z = z.copy()
             z[breaking_away, TORQUE] = 0.0
         fresh = breaking_away | moved
-        judged = []
+        judged, size = [], rows
         while start < rows:
             state = self.alarm.copy()
-            part = slice(start, rows)
+            part = slice(start, min(start + size, rows))
             alarm = self._alarms_holding(z[part], excited[part], stamps[part], torque[part],
                                          torque_bound[part], torque_scale[part], state[TORQUE],
                                          fresh[part], self._faults_elsewhere(state, stamps[part]))
-            # (an observer alarm changes neither: it is no wheel fault's and holds no level; the
-            # last row's change has no rows after it: one row, the live path, has none)
-            changes = () if len(alarm) == 1 else np.flatnonzero(
-                (alarm[:-1, WHEEL_FAULT_FAMILIES] != state[WHEEL_FAULT_FAMILIES]).any(axis=(1, 2)))
+            # The rows after a change are judged again only if it changes what judges them: the
+            # wheels whose torque level holds, or the wheels with a wheel fault's alarm (their
+            # neighbours' second-fault rule); one family's alarm giving way to another's on a
+            # faulty wheel changes neither, nor does an observer alarm (no wheel fault's, no
+            # level's). The last row's change has no rows after it: one row, the live path, has none.
+            changes = () if len(alarm) == 1 else (
+                (alarm[:-1, TORQUE] != state[TORQUE]).any(axis=1)
+                | (alarm[:-1, WHEEL_FAULT_FAMILIES].any(axis=1)
+                   != state[WHEEL_FAULT_FAMILIES].any(axis=0)).any(axis=1)).nonzero()[0]
             if not len(changes):
                 parts.append(alarm)
                 judged.append(self._pass['judged'])
                 self._remember_faults(alarm, stamps[part])
-                break
+                start, size = start + len(alarm), 2 * size
+                continue
             changed = int(changes[0])  # judged alike with the old hold up to here
             parts.append(alarm[:changed + 1])
             judged.append(self._pass['judged'][:changed + 1])
             self._rewind(changed)
             self._remember_faults(alarm[:changed + 1], stamps[start:start + changed + 1])
-            start += changed + 1
+            # after a change the next may come soon (an alarm at its threshold): the rest is
+            # judged in parts, the first REJUDGED_ROWS long, doubling while nothing changes
+            start, size = start + changed + 1, REJUDGED_ROWS
         if self.evidence_trace is not None:
             self.evidence_trace.append(np.concatenate(judged))
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
