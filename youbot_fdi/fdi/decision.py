@@ -335,9 +335,15 @@ class DecisionMaker:
         alarm rate of the same increments, fdi/alarm_rate.py)."""
         s = self.settings
         w = np.asarray(weight, dtype=float)[:, None, None]
-        capped = clip(shift, -s.evidence_cap, s.evidence_cap)[:, None]
         return (w * (np.minimum(z, s.evidence_cap) - s.evidence_drift),
-                w * (np.concatenate([capped, -capped], axis=1) - s.shift_drift))
+                w * (self.shift_scores(shift) - s.shift_drift))
+
+    def shift_scores(self, shift: np.ndarray) -> np.ndarray:
+        """The scores (N, 2, n) the torque shift CUSUMs take from the shift scores ``shift``
+        (N, n): up and down, each capped at ``evidence_cap``."""
+        cap = self.settings.evidence_cap
+        capped = clip(shift, -cap, cap)[:, None]
+        return np.concatenate([capped, -capped], axis=1)
 
     def _judged(self, magnitude, shift):
         """The evidence in thresholds (..., families, n), an alarm from 1: the magnitude CUSUMs

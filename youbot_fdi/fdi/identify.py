@@ -935,10 +935,8 @@ def false_alarm_rates(model, batch, settings, residual_data):
     estimates = {family: alarm_rate.estimate(magnitude[:, k], scores[:, k], interval)
                  for k, family in enumerate(FAMILIES)}
     rows = len(batch)
-    capped = np.clip(shift, -settings.evidence_cap, settings.evidence_cap)
     estimates['torque shift'] = alarm_rate.estimate(
-        shift_up_down.reshape(rows, -1), np.stack([capped, -capped], axis=1).reshape(rows, -1),
-        interval)
+        shift_up_down.reshape(rows, -1), decision.shift_scores(shift).reshape(rows, -1), interval)
     return estimates
 
 
