@@ -1,12 +1,12 @@
 """The batched replay path equals the one-sample-at-a-time path the live nodes run.
 
 Block decoding against rosbags, chunked reading against message-by-message reading, the batched
-residual generator and decision maker against their per-sample updates, the vectorised recursions
-against their loops.
+residual generator and decision maker against their per-sample updates, any chunking of a
+recording against any other. (The recursions against their loops: test_recursions.py; the
+decision's block against its rows written out by hand: test_decision.py.)
 """
 from dataclasses import replace
 import math
-import warnings
 
 from hypothesis import given, settings, strategies as st
 
@@ -20,9 +20,6 @@ from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.app.config import load_residual_data, residual_data_for
 from youbot_fdi.fdi.pipeline import FdiPipeline
 from youbot_fdi.fdi.observer import shared_ratio
-from youbot_fdi.fdi.recursions import (NEVER, affine_recursion, bounded_cusum, clip_recursion, cusum,
-                                      decaying_peak, last_true_value, nan_median, run_lengths,
-                                      scalar_recursion)
 from youbot_fdi.fdi.residuals import FAMILIES, ResidualGenerator
 from youbot_fdi.samples import SampleMapper
 from youbot_fdi.model import load_model
@@ -306,70 +303,6 @@ def test_gaps_and_repeated_stamps_restart_both_paths_alike(tmp_path, model, gap)
 
 
 @settings(max_examples=60, deadline=None)
-@given(rows=st.integers(0, 40), size=st.integers(1, 5), seed=st.integers(0, 2**32 - 1))
-def test_affine_recursion_equals_its_loop(rows, size, seed):
-    rng = np.random.default_rng(seed)
-    a = rng.normal(scale=0.6, size=(rows, size, size))
-    a[rng.random(rows) < 0.2] = 0.0  # restarts
-    b = rng.normal(size=(rows, size))
-    x = x0 = rng.normal(size=size)
-    expected = []
-    for k in range(rows):
-        x = a[k] @ x + b[k]
-        expected.append(x)
-    got = affine_recursion(a, b, x0)
-    assert got.shape == (rows, size)
-    np.testing.assert_allclose(got, np.reshape(expected, (rows, size)), rtol=1e-9, atol=1e-9)
-
-
-@settings(max_examples=60, deadline=None)
-@given(rows=st.integers(1, 70), seed=st.integers(0, 2**32 - 1))
-def test_smoothing_and_cusums_equal_their_loops(rows, seed):
-    """Exponential smoothing with a factor per row or per element, the CUSUM and the CUSUM held
-    below a ceiling, from any state, equal their one-row loops."""
-    rng = np.random.default_rng(seed)
-    shape = (rows, 2, 3)
-    factor_rows, factors = rng.random(rows), rng.random(shape)
-    steps = rng.normal(scale=2.0, size=shape)
-    start = rng.random(shape[1:]) * 6.0
-    ceiling = rng.uniform(1.0, 8.0)
-    flat = steps.reshape(rows, -1)
-    by_row = by_element = plain = held = start.reshape(-1)  # each name is rebound, never changed
-    expected = {name: [] for name in ('by_row', 'by_element', 'plain', 'held')}
-    for k in range(rows):
-        by_row = factor_rows[k] * by_row + flat[k]
-        by_element = factors[k].reshape(-1) * by_element + flat[k]
-        plain = np.maximum(0.0, plain + flat[k])
-        held = np.clip(held + flat[k], 0.0, ceiling)
-        for name, value in zip(expected, (by_row, by_element, plain, held)):
-            expected[name].append(value)
-    got = {'by_row': scalar_recursion(factor_rows, flat, start.reshape(-1)),
-           'by_element': scalar_recursion(factors.reshape(rows, -1), flat, start.reshape(-1)),
-           'plain': cusum(steps, start).reshape(rows, -1),
-           'held': bounded_cusum(steps, start, ceiling).reshape(rows, -1)}
-    for name, rows_expected in expected.items():
-        np.testing.assert_allclose(got[name], rows_expected, rtol=1e-9, atol=1e-9, err_msg=name)
-
-
-@settings(max_examples=60, deadline=None)
-@given(rows=st.integers(1, 70), seed=st.integers(0, 2**32 - 1))
-def test_a_clip_recursion_equals_its_loop(rows, seed):
-    """``x_k = min(max(x_{k-1}, low_k), high_k)`` with rows that hold (-inf, inf), set (low =
-    high) or clip, by its loop: the same bits (a clip does no arithmetic)."""
-    rng = np.random.default_rng(seed)
-    ends = np.sort(rng.normal(size=(rows, 2)), axis=1)
-    kind = rng.integers(0, 3, rows)
-    low = np.where(kind == 0, -np.inf, ends[:, 0])
-    high = np.where(kind == 0, np.inf, np.where(kind == 1, ends[:, 0], ends[:, 1]))
-    x = start = float(rng.normal())
-    expected = []
-    for k in range(rows):
-        x = min(max(x, low[k]), high[k])
-        expected.append(x)
-    assert clip_recursion(low, high, start).tolist() == expected
-
-
-@settings(max_examples=60, deadline=None)
 @given(rows=st.integers(1, 40), wheels=st.integers(3, 5), seed=st.integers(0, 2**32 - 1))
 def test_the_shared_ratio_is_the_same_in_any_chunking(rows, wheels, seed):
     """The ratio the wheels share (the load factor's and the rollers' drag's), rows with every
@@ -383,202 +316,6 @@ def test_the_shared_ratio_is_the_same_in_any_chunking(rows, wheels, seed):
         value = float(shared_ratio(ratio[k:k + 1], value, 0.0)[0])
         one_by_one.append(value)
     assert whole.tolist() == one_by_one
-
-
-@settings(max_examples=60, deadline=None)
-@given(rows=st.integers(1, 30), size=st.integers(1, 7), seed=st.integers(0, 2**32 - 1))
-def test_a_decaying_peak_is_the_same_in_any_chunking(rows, size, seed):
-    """``y_k = max(v_k, exp(-rate dt_k) y_{k-1})`` by its loop, and the same bits in chunks of any
-    size (the state carried between them); NaN counts as nothing."""
-    rng = np.random.default_rng(seed)
-    values = np.where(rng.random((rows, 3)) < 0.4, 0.0, rng.exponential(size=(rows, 3)))
-    values[rng.random((rows, 3)) < 0.1] = np.nan
-    elapsed = np.cumsum(rng.uniform(0.001, 0.05, rows))[:, None]
-    rate = np.array([0.0, 3.0, 40.0])  # [1/s]: never forgets, slowly, quickly
-    peak, before, expected = np.zeros(3), 0.0, []
-    for k in range(rows):
-        peak = np.maximum(np.nan_to_num(values[k]), np.exp(-rate * (elapsed[k, 0] - before)) * peak)
-        before = elapsed[k, 0]
-        expected.append(peak)
-    whole, _ = decaying_peak(values, elapsed, rate, np.full(3, -np.inf))
-    np.testing.assert_allclose(whole, expected, rtol=1e-9, atol=1e-300)
-    level, parts = np.full(3, -np.inf), []
-    for start in range(0, rows, size):
-        part, levels = decaying_peak(values[start:start + size], elapsed[start:start + size], rate, level)
-        parts.append(part)
-        level = levels[-1]
-    np.testing.assert_array_equal(np.concatenate(parts), whole)
-
-
-@settings(max_examples=80, deadline=None)
-@given(rows=st.integers(0, 6), width=st.integers(1, 6), seed=st.integers(0, 2**32 - 1))
-def test_nan_median_equals_numpys(rows, width, seed):
-    """The rows' median without NaN, as numpy's nanmedian gives it (NaN for a row of NaN)."""
-    rng = np.random.default_rng(seed)
-    values = rng.normal(size=(rows, width))
-    values[rng.random((rows, width)) < 0.3] = np.nan
-    values[rng.random((rows, width)) < 0.2] = 1.0  # ties
-    with np.errstate(all='ignore'), warnings.catch_warnings():
-        warnings.simplefilter('ignore', RuntimeWarning)  # numpy warns of all-NaN rows
-        expected = np.nanmedian(values, axis=-1)
-    np.testing.assert_array_equal(nan_median(values), expected)
-    np.testing.assert_array_equal(nan_median(values[0]) if rows else [], expected[0] if rows else [])
-
-
-@settings(max_examples=80, deadline=None)
-@given(flags=st.lists(st.lists(st.booleans(), min_size=3, max_size=3), max_size=30),
-       carry=st.lists(st.integers(0, 9), min_size=3, max_size=3), seed=st.integers(0, 999))
-def test_run_lengths_and_last_values_equal_their_loops(flags, carry, seed):
-    rows = len(flags)
-    flags = np.array(flags, dtype=bool).reshape(rows, 3)
-    restart = np.random.default_rng(seed).random(rows) < 0.15
-    count, expected = np.array(carry), []
-    for k in range(rows):
-        count = np.where(flags[k] & ~restart[k], count + 1, 0)
-        expected.append(count)
-    np.testing.assert_array_equal(run_lengths(flags, np.array(carry), restart),
-                                  np.reshape(expected, (rows, 3)))
-    values = np.arange(rows) * 10.0
-    latest, expected = -1.0, []
-    for k in range(rows):
-        latest = values[k] if restart[k] else latest
-        expected.append(latest)
-    np.testing.assert_array_equal(last_true_value(restart, values, -1.0), expected)
-
-
-@settings(max_examples=80, deadline=None)
-@given(rows=st.integers(1, 60), seed=st.integers(0, 2**32 - 1))
-def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
-    """Evidence (the magnitude CUSUM, and the torque shift CUSUMs against a level that holds still
-    while the wheel's torque alarm is set), the shared-evidence rule, alarms raised only by evidence
-    that grows, and release hysteresis over a
-    block, from any state it was left in, equal the one-row recursions; so do the rows in which the
-    base breaks away from rest (no torque evidence, the level starts afresh) and those in which
-    the wheels leave the level's operating point (the level starts afresh)."""
-    from youbot_fdi.fdi.settings import FdiSettings
-    settings_ = FdiSettings(release_time=0.05, shared_window=0.5, shift_time_constant=0.3)
-    rng = np.random.default_rng(seed)
-    shape = (len(FAMILIES), 4)
-    batched = DecisionMaker(model.wheel_names, settings_, load_residual_data())
-    batched._evidence = rng.random(shape) * 4.0
-    batched._shift = rng.random((2, 4)) * 8.0
-    batched._level.value, batched._level.weight = rng.normal(size=4) * 0.1, rng.choice([0.0, 0.5, 1.0], 4)
-    batched._typical_bound.value = np.log(rng.uniform(0.05, 0.2, size=4))
-    batched._typical_bound.weight = rng.choice([0.0, 0.5, 1.0], size=4)
-    batched._last_stamp = rng.choice([np.nan, -0.1])
-    batched._below = rng.integers(0, 6, size=shape) * settings_.evidence_interval
-    batched.alarm = rng.random(shape) < 0.5
-    batched._rise = np.where(batched._evidence >= 1.5, -rng.random(shape), batched._rise)
-    evidence, below, alarm = batched._evidence.copy(), batched._below.copy(), batched.alarm.copy()
-    shift, level, weight = batched._shift.copy(), batched._level.value.copy(), batched._level.weight.copy()
-    typical, typical_weight = batched._typical_bound.value.copy(), batched._typical_bound.weight.copy()
-    last, rise = batched._last_stamp, batched._rise.copy()
-    batched._fault_stamp = np.where(rng.random(4) < 0.5, -rng.random(4) * 2.0, NEVER)
-    fault_stamp = batched._fault_stamp.copy()
-    z = rng.random((rows, *shape)) * rng.uniform(0.5, 4.0)
-    torque = rng.normal(size=(rows, 4)) * rng.uniform(0.05, 0.5) + (np.arange(rows) > rows // 2)[:, None] * 0.3
-    torque[rng.random((rows, 4)) < 0.05] = np.nan  # no effort recorded
-    bound = rng.uniform(0.05, 0.2, size=(rows, 4)) * np.where(rng.random((rows, 4)) < 0.1, 20.0, 1.0)
-    excited = rng.random((rows, 4)) < 0.7
-    stamps = np.cumsum(rng.uniform(0.002, 0.4, rows))  # some closer than evidence_interval
-    breaking = rng.random(rows) < 0.15
-    moved = rng.random(rows) < 0.1
-    got = batched._alarms(z, excited, stamps, torque, bound, bound, breaking, moved)  # bound as scale
-    s = settings_
-    threshold = s.family_thresholds[0]  # the same for every family by default
-    level_share = 0.5 * threshold
-    scale = threshold / s.shift_threshold
-    judged_before = evidence.copy()
-    judged_before[0] = np.maximum(judged_before[0], shift.max(axis=0) * scale)
-    for k in range(rows):
-        was_up = np.maximum(evidence, np.vstack([np.maximum(shift.max(axis=0) * scale, evidence[0]),
-                                                 evidence[1:]])) >= level_share
-        # beside another wheel's fault: its torque, command or encoder alarm set after the row
-        # before, or set less than heal_time ago
-        faulty = alarm[[0, 2, 3]].any(axis=0) | (stamps[k] - fault_stamp < s.heal_time)
-        elsewhere = [faulty[np.arange(4) != w].any() for w in range(4)]
-        # the row's evidence weight: the time it stands for, at most one interval
-        row_weight = 1.0 if np.isnan(last) else min(1.0, (stamps[k] - last) / s.evidence_interval)
-        # the torque shift, against the level before this row
-        present = np.isfinite(torque[k])
-        # breaking away from rest and leaving the operating point start the level afresh
-        fresh = breaking[k] or moved[k]
-        judged_now = present & ~fresh
-        x = np.where(judged_now & (weight >= 0.5), (np.nan_to_num(torque[k]) - level) / bound[k], 0.0)
-        gain = 0.0 if np.isnan(last) else 1.0 - np.exp(-(stamps[k] - last) / s.shift_time_constant)
-        # the bound's usual size (a geometric average), and the sample's precision against it
-        precision = np.minimum(1.0, (np.exp(typical) / bound[k]) ** 2)
-        if_steady = np.full(4, not fresh) | alarm[0]
-        weight = np.where(if_steady, weight, 0.0)
-        typical_gain = gain * present
-        typical_weight = typical_weight + typical_gain * (1.0 - typical_weight)
-        typical = np.where(typical_weight > 0, typical + np.divide(
-            typical_gain, typical_weight, out=np.zeros(4), where=typical_weight > 0)
-            * (np.log(np.where(present, bound[k], 1.0)) - typical), typical)
-        gain = gain * precision * (judged_now & ~alarm[0])
-        weight = weight + gain * (1.0 - weight)
-        inside = np.clip(np.nan_to_num(torque[k]), -bound[k], bound[k])
-        level = np.where(weight > 0, level + np.divide(gain, weight, out=np.zeros(4), where=weight > 0)
-                         * (inside - level), level)
-        last = stamps[k]
-        x = np.clip(x, -s.evidence_cap, s.evidence_cap)
-        shift = np.clip(shift + row_weight * (np.stack([x, -x]) - s.shift_drift), 0.0, 2.0 * s.shift_threshold)
-        scores = z[k].copy()
-        scores[0] = 0.0 if breaking[k] else scores[0]  # no torque evidence while breaking away
-        evidence = np.maximum(0.0, evidence + row_weight * (np.minimum(scores, s.evidence_cap) - s.evidence_drift))
-        judged = evidence.copy()
-        judged[0] = np.maximum(judged[0], shift.max(axis=0) * scale)
-        up = judged >= level_share
-        rise = np.where(up & ~was_up, stamps[k], rise)
-        over = judged >= threshold
-        for family in (0, 2):  # torque, command: not while half the wheels rose together, nor
-            for w in range(4):  # a modest score while half the wheels have evidence
-                together = sum(up[family, v] and abs(rise[family, v] - rise[family, w]) <= 0.5
-                               for v in range(4))
-                if together >= 2 or (np.count_nonzero(up[family]) >= 2 and scores[family, w] < 3.0):
-                    over[family, w] = False
-                if elsewhere[w] and scores[family, w] < 3.0:  # a fault elsewhere drags this wheel
-                    over[family, w] = False
-        below = np.where(over, 0.0, np.where(excited[k], below + row_weight * s.evidence_interval, below))
-        # raised where the evidence is over and grows; held while it is over
-        alarm = np.where(over & (judged > judged_before), True,
-                         np.where(below >= s.release_time - 1e-9, False, alarm))
-        judged_before = judged
-        fault_stamp = np.where(alarm[[0, 2, 3]].any(axis=0), stamps[k], fault_stamp)
-        np.testing.assert_array_equal(got[k], alarm)
-    np.testing.assert_allclose(batched._evidence, evidence, atol=1e-9)
-    np.testing.assert_allclose(batched._shift, shift, atol=1e-9)
-    np.testing.assert_allclose(batched._level.value, level, atol=1e-9)
-    np.testing.assert_allclose(batched._typical_bound.value, typical, atol=1e-9)
-    np.testing.assert_allclose(batched._below, below, atol=1e-9)
-    np.testing.assert_array_equal(batched._fault_stamp, fault_stamp)
-
-
-@settings(max_examples=60, deadline=None)
-@given(rows=st.integers(1, 40), seed=st.integers(0, 2**32 - 1))
-def test_breaking_away_from_rest_is_the_same_over_a_block_and_row_by_row(model, rows, seed):
-    """The rows in which the base breaks away from rest (some wheel turns, less than
-    breakaway_time after a row in which every wheel stood), over a block from any earlier rest,
-    equal those found one row at a time and the definition."""
-    from youbot_fdi.fdi.settings import FdiSettings
-    settings_ = FdiSettings()
-    rng = np.random.default_rng(seed)
-    speed = rng.choice([0.0, 0.1, 0.5, 3.0], size=(rows, 4), p=[0.4, 0.2, 0.2, 0.2])
-    stamps = 5.0 + np.cumsum(rng.uniform(0.01, 0.1, rows))
-    rest = rng.choice([-1e300, 4.9, 4.99])  # never, or a little before the block
-    block, stepped = (DecisionMaker(model.wheel_names, settings_, load_residual_data()) for _ in range(2))
-    block._rest_stamp = stepped._rest_stamp = rest
-    got = block._breaking_away(speed, stamps)
-    one_by_one = np.concatenate([stepped._breaking_away(speed[k:k + 1], stamps[k:k + 1])
-                                 for k in range(rows)])
-    expected = []
-    for k in range(rows):
-        resting = bool((np.abs(speed[k]) <= settings_.stuck_speed).all())
-        rest = stamps[k] if resting else rest
-        expected.append(not resting and stamps[k] - rest < settings_.breakaway_time)
-    np.testing.assert_array_equal(got, expected)
-    np.testing.assert_array_equal(one_by_one, expected)
-    assert block._rest_stamp == stepped._rest_stamp == rest
 
 
 def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
