@@ -1,18 +1,22 @@
 """``youbot_fdi/fdi/decision.py``: the decision over a block of rows equals its one-row
 recursions, written out by hand (the evidence, the torque levels and their operating point, the
 shared-evidence and second-fault rules, the latch), whatever the block's length and the alarms
-that change inside it."""
+that change inside it; and its mechanisms against hand-derived closed forms (evidence per second
+whatever the rate, the torque levels' operating point, evidence that drains, a second fault)."""
+from dataclasses import replace
+import math
+
 from hypothesis import given, settings, strategies as st
 
 import numpy as np
+import pytest
 
 from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.recursions import NEVER
-from youbot_fdi.fdi.residuals import FAMILIES
+from youbot_fdi.fdi.residuals import FAMILIES, ResidualBatch, ResidualFrame
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
-import pytest
 
 FAST_EXCEPT = ()  # `make check`: every test here (the unit tests of the core, under a minute)
 
@@ -193,3 +197,168 @@ def test_the_operating_point_is_the_same_over_a_block_and_row_by_row(model, rows
         expected.append(bool(away))
     np.testing.assert_array_equal(got, expected)
     np.testing.assert_array_equal(one_by_one, expected)
+
+
+def frame(model, stamp, torque_score, speed=2.0):
+    n = len(model.wheel_names)
+    values = {f: np.zeros(n) for f in FAMILIES}
+    values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
+    return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
+                         velocity=np.full(n, speed), torque=np.full(n, 0.5), velocity_mode=True,
+                         command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
+                         effort_frozen=np.zeros(n, dtype=int), position_frozen=np.zeros(n, dtype=int),
+                         silent=np.zeros(n))
+
+
+def first_alarm_time(model, rate, score, seconds=1.0):
+    """When a constant torque score on one wheel first alarms [s from the first sample]."""
+    settings = replace(FdiSettings(), breakaway_time=0.0)
+    decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
+    for k in range(int(seconds * rate)):
+        if any(e.level == 'ERROR' for e in decision.update(frame(model, 10.0 + k / rate, score))):
+            return k / rate
+    return math.inf
+
+
+def test_the_operating_point_of_the_torque_levels_changes_beyond_its_range(model):
+    """Closed form, against the mean of the speeds since the operating point started: from 2 rad/s
+    a wheel at 2.4 is the same point (0.4 within a quarter of the fastest mean, 0.5, plus three
+    speed_sigma, 0.03); at 2.7 (0.6 from the mean 2.1) another one, whose mean is the reference
+    after; near standstill a change under stuck_speed is none. Row by row gives the same rows;
+    a quantised reading jumping within three of its noise is no change."""
+    s = FdiSettings()
+    assert (s.shift_operating_range, s.stuck_speed, s.speed_sigma) == (0.25, 0.3, 0.01)
+    speeds = np.full((8, 4), 2.0)
+    speeds[2, 1] = 2.4  # 0.4 < 0.5 + 0.03: the same point
+    speeds[4:, 1] = 2.7  # 0.6 from the mean 2.1 > 0.525 + 0.03: another point
+    speeds[6:, 1] = 3.0  # 0.3 from 2.7: the same as row 4's
+    speeds = np.vstack([speeds, np.zeros((2, 4)), [[0.2, 0.0, 0.0, 0.0]], [[0.5, 0.0, 0.0, 0.0]]])
+    expected = np.zeros(len(speeds), dtype=bool)
+    expected[[4, 8, 11]] = True  # 2.7; to rest; 0.5 - 0.07 > stuck_speed + 0.03 at rest (not 0.2)
+    same_load = np.ones(len(speeds))
+    batched = DecisionMaker(model.wheel_names, s, load_residual_data())
+    np.testing.assert_array_equal(batched.operating_point_changes(speeds, same_load), expected)
+    one_by_one = DecisionMaker(model.wheel_names, s, load_residual_data())
+    rows = [bool(one_by_one.operating_point_changes(row[None], load[None])[0])
+            for row, load in zip(speeds, same_load)]
+    np.testing.assert_array_equal(rows, expected)
+    # a Robotino's readings: two quantisation steps up now and then (0.6 > 0.45 + 0.03)
+    quantised = np.tile(np.vstack([np.tile([1.4, -1.8, 0.4], (9, 1)), [[2.0, -1.8, 0.4]]]), (10, 1))
+    noisy = DecisionMaker(model.wheel_names[:3], replace(s, speed_sigma=0.11), load_residual_data())
+    assert not noisy.operating_point_changes(quantised, np.ones(len(quantised))).any()
+    assert DecisionMaker(model.wheel_names[:3], s, load_residual_data()).operating_point_changes(
+        quantised, np.ones(len(quantised))).any()  # the same jumps are moves for a reading without noise
+    # the load factor the explained friction is scaled by is part of the point: from a mean of 2,
+    # 2.4 is the same (0.4 < a quarter of 2); 2.7 is 0.6 from the mean 2.1 (> 0.525), another
+    # point, the reference after
+    steady, loads = np.full((6, 4), 2.0), np.array([2.0, 2.0, 2.4, 2.0, 2.7, 2.7])
+    moved = np.zeros(6, dtype=bool)
+    moved[4] = True
+    batched = DecisionMaker(model.wheel_names, s, load_residual_data())
+    np.testing.assert_array_equal(batched.operating_point_changes(steady, loads), moved)
+    one_by_one = DecisionMaker(model.wheel_names, s, load_residual_data())
+    np.testing.assert_array_equal(
+        [bool(one_by_one.operating_point_changes(row[None], load[None])[0]) for row, load in zip(steady, loads)],
+        moved)
+
+
+@pytest.mark.parametrize('speed_after, alarms', [(2.0, True), (4.0, False)])
+def test_a_torque_shift_is_evidence_only_at_the_operating_point_of_its_level(model, speed_after, alarms):
+    """A wheel's torque residual at -0.5 bound for 4 s, then at +0.5 (inside the bound: the
+    magnitude test adds nothing): at the same speeds that is a shift of one bound, an alarm
+    within (shift_threshold / (1 - shift_drift)) intervals; at twice the speed it is another
+    operating point, where the model's bias is another, and the level starts afresh (no alarm)."""
+    s = replace(FdiSettings(), breakaway_time=0.0)
+    decision = DecisionMaker(model.wheel_names, s, load_residual_data())
+    rate = 100.0
+    for k in range(int(4.0 * rate)):
+        assert not decision.update(frame(model, 10.0 + k / rate, -0.5))
+    first = math.inf
+    for k in range(int(4.0 * rate), int(5.0 * rate)):
+        stamp = 10.0 + k / rate
+        if any(e.level == 'ERROR' for e in decision.update(frame(model, stamp, 0.5, speed_after))):
+            first = min(first, stamp - 14.0)
+    if alarms:
+        intervals = math.ceil(s.shift_threshold / (1.0 - s.shift_drift)) - 1
+        assert first == pytest.approx(intervals / rate, abs=1.0 / rate + 1e-9)
+    else:
+        assert first == math.inf
+
+
+@pytest.mark.parametrize('rate', [100.0, 250.0, 500.0])
+def test_evidence_accumulates_per_second_whatever_the_rate(model, rate):
+    """Closed form: a constant score z adds (z - drift) per evidence_interval; the alarm comes once
+    threshold / (z - drift) intervals have passed: at 100, 250 or 500 Hz alike (the first sample
+    counts a whole interval)."""
+    s = FdiSettings()
+    z = 2.0
+    expected = (math.ceil(s.family_thresholds[0] / (z - s.evidence_drift)) - 1) * s.evidence_interval
+    assert first_alarm_time(model, rate, z) == pytest.approx(expected, abs=1.0 / rate + 1e-9)
+
+
+def test_a_slow_base_needs_as_many_samples_as_intervals(model):
+    """At 20 Hz no sample counts for more than one interval: a single excess never alarms."""
+    s = FdiSettings()
+    z = 2.0
+    samples = math.ceil(s.family_thresholds[0] / (z - s.evidence_drift))
+    assert first_alarm_time(model, 20.0, z) == pytest.approx((samples - 1) / 20.0)
+
+
+def test_evidence_that_drains_holds_no_new_alarm(model):
+    """Two wheels' command residuals rise together (a shared change: no wheel fault) and fall
+    back; the first drains at 1 a sample (score 0), the second at 0.5 (score 0.5), so after 7
+    samples only the second is over the threshold, no longer shared. Evidence that drains tells of the
+    shared excess, not of a fault now: no alarm. The second wheel's own excess after that (score
+    2.5, evidence growing by 1.5 a sample from where it drained to) is one, on that wheel."""
+    s = FdiSettings()
+    decision = DecisionMaker(model.wheel_names, replace(s, breakaway_time=0.0), load_residual_data())
+    n = len(model.wheel_names)
+
+    def scores(first, second):
+        f = frame(model, 0.0, 0.0)
+        values = dict(f.values, command=np.array([first, second, 0.0, 0.0]))
+        return values
+
+    plan = [(3.0, 3.0)] * 4 + [(0.0, 0.5)] * 8 + [(0.0, 2.5)] * 4
+    events = []
+    for k, (first, second) in enumerate(plan):
+        f = replace(frame(model, 10.0 + 0.01 * k, 0.0), values=scores(first, second))
+        events += [(k, e.wheel) for e in decision.update(f) if e.level == 'ERROR']
+    threshold = s.family_thresholds[FAMILIES.index('command')]
+    assert 4 * 2.0 >= threshold  # both over the threshold together: shared
+    # after 7 samples the first is under half the threshold (no longer up), the second still over
+    assert 4 * 2.0 - 7 * 1.0 < 0.5 * threshold and 4 * 2.0 - 8 * 0.5 >= threshold
+    assert n == 4 and events and events[0] == (12, model.wheel_names[1])
+
+
+def test_beside_another_wheels_alarm_only_a_clear_excess_is_a_second_fault(model):
+    """Wheel fl's command score 3 alarms at its second sample (evidence 2 a sample, threshold 3):
+    it does not do what it was told (a runaway). While that alarm is set, fr's torque score 2.5
+    (evidence 1.5 a sample, over the threshold at its second sample) is the excess a fault
+    elsewhere gives the wheels it drags: no alarm. Its score 3.5 (at least
+    ``second_fault_score``) is a second fault, found at once (the evidence it gathered is over
+    the threshold and grows). Row by row and in one batch alike; without fl's alarm the same 2.5
+    alarms at its second sample."""
+    s = replace(FdiSettings(), breakaway_time=0.0)
+    assert s.second_fault_score == 3.0 and s.evidence_cap == 3.0
+    assert s.family_thresholds[FAMILIES.index('torque')] == s.family_thresholds[FAMILIES.index('command')] == 3.0
+    plan = [(3.0, 0.0)] * 3 + [(3.0, 2.5)] * 10 + [(3.0, 3.5)] * 2
+
+    def frames(plan):
+        for k, (first, second) in enumerate(plan):
+            f = frame(model, 10.0 + 0.01 * k, 0.0)
+            yield replace(f, values=dict(f.values, command=np.array([first, 0.0, 0.0, 0.0]),
+                                         torque=np.array([0.0, second, 0.0, 0.0])))
+
+    def alarms(decision, plan):
+        return [(k, e.wheel) for k, f in enumerate(frames(plan)) for e in decision.update(f)
+                if e.level == 'ERROR']
+
+    fl, fr = model.wheel_names[:2]
+    assert alarms(DecisionMaker(model.wheel_names, s, load_residual_data()), plan) == [(1, fl), (13, fr)]
+    batched = DecisionMaker(model.wheel_names, s, load_residual_data())
+    events = batched.update_batch(ResidualBatch.of_frames(list(frames(plan))))
+    assert [(round((e.stamp - 10.0) / 0.01), e.wheel) for e in events if e.level == 'ERROR'] == [
+        (1, fl), (13, fr)]
+    alone = [(0.0, second) for _, second in plan]
+    assert alarms(DecisionMaker(model.wheel_names, s, load_residual_data()), alone)[0] == (4, fr)

@@ -1,0 +1,165 @@
+"""``youbot_fdi/fdi/observer.py``: the model observer and the command path (the firmware loop's
+prediction, its restart from the measured state), the load factor the wheels share, friction
+beyond the calibrated speeds, commands counted late; each against a hand-derived closed form."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from youbot_fdi.fdi.learned import mask_wheels
+from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.model import load_model
+
+FAST_EXCEPT = ()  # `make check`: every test here (the unit tests of the core, under a minute)
+
+
+@pytest.fixture(scope='module')
+def model():
+    return load_model('youbot')
+
+
+def test_the_command_path_takes_the_measured_state_at_a_current_calibration_never_saw(model):
+    """A saturating drive's current limit is unknown beyond what calibration measured: there the
+    prediction is the measured speed (no evidence), and it predicts again from that state once
+    the current is back within range."""
+    from youbot_fdi.fdi.observer import CALIBRATED_SHARE, ModelObserver
+    from youbot_fdi.samples import CommandSample, JointSample
+    limit = 1.0  # [N·m] calibration's largest torque
+    observer = ModelObserver(model, replace(FdiSettings(), calibrated_effort=limit))
+    observer.command(CommandSample(0.0, 'velocity', np.full(4, 5.0)))
+    speeds = np.array([1.0, 1.5, 2.0, 2.5])
+    observer.update(JointSample(0.01, np.zeros(4), speeds, np.zeros(4)))
+    high = np.full(4, CALIBRATED_SHARE * limit + 0.01)
+    prediction = observer.update(JointSample(0.02, np.zeros(4), speeds + 0.1, high * model.kinematics.drive_signs))
+    held = model.kinematics.drive_signs * (speeds + 0.1)  # the sample, kinematic convention
+    np.testing.assert_allclose(prediction.from_commands, held)
+    assert prediction.outside_calibration == 0.0  # within the margin: held, not yet a WARN
+    assert prediction.resynced  # it started again from a guessed state
+    low = observer.update(JointSample(0.03, np.zeros(4), speeds + 0.2, np.full(4, 0.1)))
+    assert low.resynced  # and the row after (its integral is the loop's again)
+    later = observer.update(JointSample(0.04, np.zeros(4), speeds + 0.3, np.full(4, 0.1)))
+    assert np.all(np.abs(later.from_commands - held) > 1e-6) and not later.resynced  # predicting
+
+
+@pytest.mark.parametrize('integral_gain', [None, 3.0])
+def test_the_command_path_settles_after_it_took_the_measured_state(model, integral_gain):
+    """Where a wheel's current reached what calibration never saw, the command path took the
+    measured state, and that wheel's integral is a guess (its loop may have wound up): its
+    command residual is not judged for ``startup_time`` after the last such row, as after a
+    start, or for three of the loop's slowest time constants if that is longer (a weak integral
+    gain forgets a wrong guess slowly), and is again after it. The other wheels' integrals,
+    implied by currents within the loop's range, are the loop's: they are judged throughout."""
+    from youbot_fdi.fdi.residuals import SETTLE_TIME_CONSTANTS, ResidualGenerator
+    from youbot_fdi.model import slowest_time_constant
+    from youbot_fdi.model.profile import PlatformModel
+    from youbot_fdi.samples import CommandSample, JointSample
+    if integral_gain is not None:
+        model = PlatformModel(replace(model.profile, firmware=replace(model.firmware,
+                                                                      velocity_ki=integral_gain)))
+    settings = replace(FdiSettings(), calibrated_effort=1.0, startup_time=0.2)
+    settle = max(settings.startup_time, SETTLE_TIME_CONSTANTS * slowest_time_constant(
+        model.dynamics, model.drive.torque_per_amp, model.firmware))
+    assert (settle > 0.5) == (integral_gain is not None)  # the weak gain: longer than startup_time
+    generator = ResidualGenerator(model, settings)
+    generator.command(CommandSample(0.0, 'velocity', np.full(4, 5.0)))
+    signs = model.kinematics.drive_signs
+    judged = {}
+    rows = int(round((0.31 + settle) / 0.01)) + 10
+    for k in range(1, rows):
+        stamp = 0.01 * k
+        effort = np.full(4, 0.1)
+        if k == 30:
+            effort[2] = 2.0  # one sample of wheel bl at twice calibration's largest torque
+        frame = generator.update(JointSample(stamp, np.zeros(4), signs * 1.0, signs * effort))
+        if frame is not None:
+            judged[round(stamp, 2)] = frame.values['command'] != 0.0
+    assert not judged[0.3].any() and not judged[0.31].any()
+    assert judged[0.29].all() or integral_gain is not None  # a slow loop still settles from its start
+    # settling: after the row after the jump (0.31 s), for bl alone
+    for j in range(1, int(settle / 0.01) - 1):
+        now = judged[round(0.31 + 0.01 * j, 2)]
+        assert not now[2]
+        assert now[[0, 1, 3]].all() or 0.01 * (31 + j) < 0.01 + settle  # the start (0.01 s) settling
+    after = round(0.31 + 0.01 * (int(settle / 0.01) + 2), 2)
+    assert judged[after].all()
+
+
+def test_the_load_factor_follows_a_platform_change_of_any_size(model):
+    """No clamp: every wheel needing about three times its friction is a factor of about 3 (the
+    median); one wheel alone cannot move it; most wheels changing alike while one does not (a
+    floor that triples rolling friction and leaves a sliding wheel's) is most wheels' change."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    observer = ModelObserver(model, FdiSettings())
+    friction = np.full(4, 0.2)
+
+    def factor(ratios, previous=1.0, voting=(True,) * 4):
+        votes = np.where(voting, friction, 0.0)
+        row = np.concatenate([np.array(ratios) * votes, votes])[None]
+        return float(observer._load_factor(row, previous)[0])
+
+    assert factor([3.2, 3.0, 3.4, 3.1]) == pytest.approx(3.15)
+    assert factor([5.0, 1.0, 1.0, 1.0]) == pytest.approx(1.0)
+    assert factor([3.3, 1.0, 3.3, 3.2]) == pytest.approx(3.25)
+
+
+def test_two_voters_move_the_load_factor_as_far_as_both_agree(model):
+    """Where only two wheels vote (the others stand), the factor before stands in for the rest:
+    the median of the two and it. Both needing more moves it by the smaller change; one wheel alone
+    (a fault) does not move it; one voter holds it."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    observer = ModelObserver(model, FdiSettings())
+    friction = np.array([0.2, 0.2, 0.0, 0.0])  # two wheels stand: no friction level, no vote
+
+    def factor(ratios, previous):
+        return float(observer._load_factor(
+            np.concatenate([np.array(ratios + [0.0, 0.0]) * friction, friction])[None], previous)[0])
+
+    assert factor([2.1, 1.8], 1.0) == pytest.approx(1.8)  # both: the smaller change
+    assert factor([0.6, 0.7], 1.0) == pytest.approx(0.7)
+    assert factor([5.0, 1.05], 1.0) == pytest.approx(1.05)  # one wheel's fault: the other's
+    assert factor([5.0, 0.95], 1.0) == pytest.approx(1.0)  # either side of the last: held
+    assert factor([0.3, 1.0], 1.7) == pytest.approx(1.0)
+    one = np.concatenate([[0.6, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])[None]  # one voter at x3
+    assert float(observer._load_factor(one, 1.7)[0]) == pytest.approx(1.7)  # held
+
+
+def test_friction_beyond_the_calibrated_speeds_is_allowed_between_its_extrapolations(model):
+    """Calibrated at one speed, the friction at a third of it may be anything between the same
+    (all Coulomb) and a third (all viscous): the allowance is the friction at the calibrated speed
+    (same direction) times the relative distance, 2/3 of it; nothing within the range."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    direction = np.array([1.0, -1.0, 1.0, -1.0]) / 2.0  # unit norm
+    calibrated = 6.0  # [rad/s] the norm of the wheel speeds calibration drove at
+    observer = ModelObserver(model, replace(FdiSettings(), calibrated_speed_range=(calibrated, calibrated)))
+    slow = direction * calibrated / 3.0
+    level_there = np.abs(observer.friction * direction * calibrated
+                         + observer._coulomb(direction * calibrated)[1])
+    np.testing.assert_allclose(observer._speed_extrapolation(slow), level_there * 2.0 / 3.0)
+    np.testing.assert_allclose(observer._speed_extrapolation(direction * calibrated), 0.0)
+    fast = direction * calibrated * 2.0  # twice as fast: all-viscous doubles it
+    np.testing.assert_allclose(observer._speed_extrapolation(fast), level_there)
+    assert ModelObserver(model, FdiSettings())._speed_extrapolation(slow) == 0.0  # no calibration
+
+
+def test_a_command_that_comes_after_samples_it_was_in_force_for_is_counted_late(model):
+    """Live, a host behind may deliver a command after samples stamped later than it: those were
+    judged without it (a replay of the same recording would not be), which the observer counts
+    for the input diagnostics; a command for samples still to come is not late."""
+    from youbot_fdi.fdi.observer import COMMANDS_LATE, ModelObserver
+    from youbot_fdi.samples import CommandSample, JointSample
+    settings = FdiSettings()
+    observer = ModelObserver(model, settings)
+    observer.command(CommandSample(0.0, 'velocity', np.zeros(4)))
+    for stamp in (0.01, 0.02, 0.03):
+        observer.update(JointSample(stamp, np.zeros(4), np.zeros(4), np.zeros(4)))
+    observer.command(CommandSample(0.03 - settings.input_delay + 0.001, 'velocity', np.ones(4)))
+    assert observer.counters[COMMANDS_LATE] == 0  # in force from after the last sample judged
+    observer.command(CommandSample(0.02 - settings.input_delay, 'velocity', np.ones(4)))
+    assert observer.counters[COMMANDS_LATE] == 1  # was in force at 0.02 and 0.03
+    # the command path of every wheel starts again from the measured state and settles
+    speeds = np.full(4, 0.5)
+    prediction = observer.update(JointSample(0.04, np.zeros(4), speeds, np.zeros(4)))
+    assert list(mask_wheels(prediction.resynced, 4)) == [True] * 4
+    np.testing.assert_allclose(prediction.from_commands, model.kinematics.drive_signs * speeds)
+    following = observer.update(JointSample(0.05, np.zeros(4), speeds, np.zeros(4)))
+    assert not mask_wheels(following.resynced, 4).any()

@@ -1,0 +1,277 @@
+"""``youbot_fdi/fdi/residuals.py``: the residual evaluator's bounds (widening beyond the
+calibrated range, the remembered extrapolation of a transient, the loop's compliance), the
+frozen-reading and silence tests, slip, the parity relations and the torque shift's scale; each
+against a hand-derived closed form."""
+from dataclasses import replace
+import math
+
+import numpy as np
+import pytest
+
+from youbot_fdi.fdi.decision import DecisionMaker
+from youbot_fdi.app.config import load_residual_data
+from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, SPEED_NOISE_SIGMAS,
+                                      PRIOR_SETTINGS, ResidualEvaluator, ResidualFrame,
+                                      bound_weights)
+from youbot_fdi.fdi.settings import FdiSettings
+from youbot_fdi.model import load_model
+from youbot_fdi.model.firmware import slowest_time_constant
+
+FAST_EXCEPT = ()  # `make check`: every test here (the unit tests of the core, under a minute)
+
+
+@pytest.fixture(scope='module')
+def model():
+    return load_model('youbot')
+
+
+def test_bounds_beyond_the_calibrated_range_widen_with_the_prior(model):
+    """Inside the range the learned weights; a feature's excess beyond it is weighed with the
+    larger of the learned and the default weight."""
+    learned = dict(zip(BOUND_TERMS['torque'], (0.05, 0.0, 0.1, 0.2)))  # calibration saw no inertia
+    settings = replace(FdiSettings(), torque_feature_range=(math.inf, 0.5, 2.0, 1.0), **learned)
+    evaluator = ResidualEvaluator(model, settings)
+    features = np.array([[1.0, 2.5, 1.0, 1.5]])  # inertial torque 5x the range, friction 1.5x
+    prior = bound_weights(PRIOR_SETTINGS, 'torque')
+    w = np.array(list(learned.values()))
+    inside = np.array([1.0, 0.5, 1.0, 1.0])
+    excess = features[0] - inside
+    expected = inside @ w + excess @ np.maximum(w, prior)
+    assert evaluator.bound('torque', features)[0] == pytest.approx(expected)
+    assert expected > features[0] @ w  # wider than the learned bound extrapolated
+    within = np.array([[1.0, 0.4, 1.5, 0.9]])
+    assert evaluator.bound('torque', within)[0] == pytest.approx(within[0] @ w)
+    beyond = evaluator.beyond_calibration({'torque': np.stack([features, within], axis=0)})
+    assert beyond.tolist() == [[True], [False]]
+
+
+def test_the_command_bound_remembers_an_extrapolated_transient_as_the_loop_does(model):
+    """A row whose predicted acceleration is X beyond what calibration covered widens the command
+    bound by w X (w: the larger of the learned and the default weight); the rows after it, inside
+    the range again, keep w X exp(-(t - t_0) / tau), tau the loop's slowest time constant (the
+    time a guessed start takes to fade), the same row by row; nothing while settling, nothing
+    from before a restart."""
+    learned = dict(zip(BOUND_TERMS['command'], (0.02, 0.01, 0.05, 0.004)))
+    settings = replace(FdiSettings(), command_feature_range=(math.inf, 10.0, 3.0, 5.0), **learned)
+    evaluator = ResidualEvaluator(model, settings)
+    tau = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
+    weight = max(learned['command_delay'], bound_weights(PRIOR_SETTINGS, 'command')[3])
+    rows, dt, excess = 12, 0.01, 20.0  # [rad/s²] beyond the range, on wheel 1 only
+    stamp = 100.0 + dt * np.arange(rows)
+    features = np.tile([1.0, 2.0, 0.5, 1.0], (rows, 4, 1))
+    features[0, 1, 3] = 5.0 + excess
+    mode, calm = np.ones(rows, dtype=bool), np.zeros((rows, 4), dtype=bool)
+    fresh = np.zeros(rows, dtype=bool)
+    added = evaluator._remembered_extrapolation(features, mode, calm, stamp, fresh)
+    expected = np.zeros((rows, 4))
+    expected[1:, 1] = weight * excess * np.exp(-(stamp[1:] - stamp[0]) / tau)
+    np.testing.assert_allclose(added, expected, rtol=1e-9, atol=1e-12)
+    assert evaluator.bound('command', features[:1])[0, 1] == pytest.approx(
+        features[0, 1] @ np.array(list(learned.values())) - 20.0 * learned['command_delay']
+        + weight * excess)  # the row itself: its own excess, in the bound already
+    one_by_one = ResidualEvaluator(model, settings)
+    by_row = np.concatenate([one_by_one._remembered_extrapolation(
+        features[k:k + 1], mode[k:k + 1], calm[k:k + 1], stamp[k:k + 1], fresh[k:k + 1])
+        for k in range(rows)])
+    np.testing.assert_array_equal(by_row, added)
+    settling = evaluator._remembered_extrapolation(features, mode, ~calm, stamp + 1.0, fresh)
+    assert np.all(settling == 0.0)
+    restart = fresh.copy()
+    restart[3] = True
+    after = ResidualEvaluator(model, settings)._remembered_extrapolation(features, mode, calm, stamp,
+                                                                        restart)
+    np.testing.assert_allclose(after[:3], expected[:3], rtol=1e-9, atol=1e-12)
+    assert np.all(after[3:] == 0.0)
+    current_mode = mode.copy()
+    current_mode[2:] = False  # an effort bound [N·m] takes nothing of the speed's memory
+    mixed = ResidualEvaluator(model, settings)._remembered_extrapolation(features, current_mode, calm,
+                                                                        stamp, fresh)
+    np.testing.assert_allclose(mixed[:2], expected[:2], rtol=1e-9, atol=1e-12)
+    assert np.all(mixed[2:] == 0.0)
+
+
+def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):
+    """The frozen-position test counts a wheel as turning only where its speed less
+    SPEED_NOISE_SIGMAS x speed_sigma moves the encoder by FROZEN_MIN_TICKS in the interval."""
+    sigma = 0.05  # [rad/s]
+    evaluator = ResidualEvaluator(model, replace(FdiSettings(), speed_sigma=sigma))
+    step = 0.002  # 500 Hz
+    needed = FROZEN_MIN_TICKS * evaluator.position_quantum / step + SPEED_NOISE_SIGMAS * sigma
+    speeds = np.array([[0.5 * needed, 0.99 * needed, 1.01 * needed, 3 * needed]])
+    moving = evaluator._moving(speeds, np.zeros((1, 4)), np.array([[False]]), step)
+    assert moving.tolist() == [[False, False, True, True]]
+
+
+def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(model):
+    """A wheel under its firmware's proportional gain k_p k_t answers a torque d it was not told
+    of (a floor's drag) with the speed error d / (k_p k_t) (1 - exp(-t / tau)), tau = M_ii /
+    (k_p k_t): the command bound allows that much of the torque residual the wheel carries, the
+    same in one block and row by row, and from nothing again after a restart."""
+    evaluator = ResidualEvaluator(model, FdiSettings())
+    tau = evaluator.loop_time_constant
+    stiffness = model.firmware.velocity_kp * model.drive.torque_per_amp
+    np.testing.assert_allclose(tau, np.diag(model.dynamics.mass_matrix) / stiffness)
+    assert evaluator.loop_compliance == pytest.approx(1.0 / stiffness)
+    dt, rows, d = 0.01, 30, np.array([0.2, -0.1, 0.0, np.nan])  # [s], [N·m]; NaN: effort unknown
+    step = np.full((rows, 1), dt)
+    carried = evaluator._loop_disturbance(np.tile(d, (rows, 1)), step, np.zeros(rows, dtype=bool))
+    t = dt * np.arange(1, rows + 1)[:, None]
+    expected = np.where(np.isnan(d), 0.0, d) * -np.expm1(-t / tau)
+    np.testing.assert_allclose(carried, expected, rtol=1e-12, atol=1e-15)
+    row_by_row = ResidualEvaluator(model, FdiSettings())
+    one = np.concatenate([row_by_row._loop_disturbance(d[None], step[:1], np.zeros(1, dtype=bool))
+                          for _ in range(rows)])
+    np.testing.assert_allclose(one, carried, rtol=1e-12)
+    restarted = evaluator._loop_disturbance(d[None], step[:1], np.ones(1, dtype=bool))
+    assert np.all(restarted == 0.0)
+    # the bound: the larger of the unseen friction and the carried torque, through the compliance
+    speed, target = np.full((1, 4), 2.0), np.full((1, 4), 2.0)
+    args = (speed, np.zeros((1, 4)), speed, speed, target, target, target, np.ones((1, 1), dtype=bool),
+            np.zeros((1, 1), dtype=bool))
+    _, plain, *_ = evaluator._command_terms(*args, np.zeros((1, 4)), np.zeros((1, 4)), step[:1])
+    _, allowed, *_ = evaluator._command_terms(*args, np.full((1, 4), 0.05), carried[-1:], step[:1])
+    extra = np.maximum(0.05, np.abs(carried[-1])) / stiffness
+    np.testing.assert_allclose(allowed - plain, extra[None])
+    # a command sent but not yet acting: the step to it is allowed (velocity mode only)
+    latest = target + np.array([[1.5, -0.5, 0.0, 2.0]])
+    sent = (speed, np.zeros((1, 4)), speed, speed, target, target, latest)
+    flags = (np.zeros((1, 1), dtype=bool), np.zeros((1, 4)), np.zeros((1, 4)), step[:1])
+    _, ahead, *_ = evaluator._command_terms(*sent, np.ones((1, 1), dtype=bool), *flags)
+    np.testing.assert_allclose(ahead - plain, np.abs(latest - target))
+    _, effort_plain, *_ = evaluator._command_terms(*args[:7], np.zeros((1, 1), dtype=bool), *flags)
+    _, effort_ahead, *_ = evaluator._command_terms(*sent, np.zeros((1, 1), dtype=bool), *flags)
+    np.testing.assert_array_equal(effort_ahead, effort_plain)
+
+
+def test_a_wheel_is_silent_from_its_first_sample_without_a_reading_not_across_a_gap(model):
+    """Only a sample closed without a wheel's reading shows its module silent: after a gap with no
+    samples at all (the stream or the host stalled: the base's comm_loss if it lasts), a wheel
+    missing from the next sample has been silent 0 s, and its silence then grows with the
+    samples it misses; any chunking of the rows gives the same times."""
+    stamps = np.array([0.0, 0.01, 0.31, 0.32, 0.33, 0.34, 0.35])  # 0.3 s without any sample
+    answered = np.ones((len(stamps), 4), dtype=bool)
+    answered[2:6, 1] = False  # wheel 1 missing from the sample after the gap on
+    answered[6, 3] = False  # wheel 3 misses one sample
+    expected = np.zeros((len(stamps), 4))
+    expected[2:6, 1] = stamps[2:6] - stamps[2]
+    whole = ResidualEvaluator(model, FdiSettings()).silence(stamps, answered)
+    np.testing.assert_allclose(whole, expected, atol=1e-12)
+    chunked = ResidualEvaluator(model, FdiSettings())
+    rows = [chunked.silence(stamps[k:k + 1], answered[k:k + 1]) for k in range(len(stamps))]
+    np.testing.assert_allclose(np.concatenate(rows), expected, atol=1e-12)
+
+
+def test_wheels_whose_speeds_fit_no_motion_slip_for_as_long_and_the_breakaway_after(model):
+    """Speeds of a rigid motion never slip, however fast; a part no motion explains (the
+    kinematics' null space) slips beyond the calibrated slip widened by its margin plus three
+    speed_sigma (1.1 x 0.05 + 0.03 = 0.085 rad/s), and the base catches up for breakaway_time
+    after; a row at a time gives the same rows. A base of three wheels always fits a motion."""
+    settings = replace(FdiSettings(), calibrated_slip=0.05, speed_sigma=0.01)
+    assert (settings.calibration_range_margin, settings.breakaway_time) == (0.1, 0.2)
+    evaluator = ResidualEvaluator(model, settings)
+    assert evaluator.slip_limit == pytest.approx(0.085)
+    null = np.linalg.svd(model.kinematics.jacobian.T)[2][-1]  # orthogonal to every motion's speeds
+    null = null / np.abs(null).max()
+    rigid = model.kinematics.inverse(np.array([0.8, -0.5, 2.0]))  # a fast motion: no slip
+    extra = np.zeros(40)
+    extra[5], extra[10] = 0.08, 0.09  # under, then over the limit
+    speeds = rigid + extra[:, None] * null
+    stamps = 10.0 + 0.01 * np.arange(40)
+    expected = (stamps >= stamps[10] - 1e-9) & (stamps - stamps[10] < 0.2 - 1e-9)
+    assert evaluator.slipping(speeds, stamps).tolist() == expected.tolist()
+    one_by_one = ResidualEvaluator(model, settings)
+    rows = [bool(one_by_one.slipping(speeds[k:k + 1], stamps[k:k + 1])[0]) for k in range(40)]
+    assert rows == expected.tolist()
+    assert not ResidualEvaluator(model, FdiSettings()).slipping(speeds, stamps).any()  # inf: none
+    robotino = load_model('robotino')
+    three = replace(FdiSettings(), calibrated_slip=0.0, speed_sigma=1e-6)
+    wild = np.random.default_rng(3).normal(0.0, 20.0, (50, 3))  # any speeds fit a motion
+    assert not ResidualEvaluator(robotino, three).slipping(wild, stamps[:1] + np.arange(50)).any()
+
+
+def test_the_parity_relations_confirm_a_wheel_alone_and_nothing_the_base_shares(model):
+    """The youBot's one parity relation weighs every wheel by 1/2 (B = (+-1/2, ...)): a residual
+    d on one wheel alone is confirmed in full; a force on the base (its range: a sideways drag,
+    pattern (-1, 1, 1, -1)) not at all; a wheel's d beside that drag c by d / |d - c| (at most
+    1); a residual pointing against what the relation says, 0. Slipping rows, missing residuals
+    and a base of three wheels: 1 (nothing to say)."""
+    evaluator = ResidualEvaluator(model, FdiSettings())
+    basis = model.kinematics.parity_basis
+    assert basis.shape == (4, 1) and np.allclose(np.abs(basis), 0.5)
+    sideways = model.kinematics.jacobian[:, 1] / model.kinematics.jacobian[0, 0]  # (-1, 1, 1, -1)
+    assert np.allclose(sideways, [-1.0, 1.0, 1.0, -1.0])
+    d, c = 0.3, 0.1
+    rows = np.array([[d, 0.0, 0.0, 0.0],
+                     0.2 * sideways,
+                     [d, 0.0, 0.0, 0.0] + c * sideways,  # wheel fl: d - c, the others +-c
+                     [d, 0.0, 0.0, 0.0],
+                     [np.nan, 0.1, 0.1, 0.1]])
+    slipping = np.array([False, False, False, True, False])
+    share = evaluator.parity_confirmed(rows, slipping)
+    assert share[0].tolist() == [1.0, 1.0, 1.0, 1.0]  # the others have no residual to judge
+    assert np.allclose(share[1], 0.0)
+    assert share[2, 0] == pytest.approx(min(1.0, d / abs(d - c)))
+    # B = +-(-1, -1, 1, 1)/2: the relation reads -d/2 (+-); fr alone would have to be +d (its
+    # +c agrees: confirmed), bl alone -d (its +c points the other way: 0)
+    assert np.allclose(np.sign(basis[:, 0]) * np.sign(basis[0, 0]), [1.0, 1.0, -1.0, -1.0])
+    assert share[2, 1] == 1.0 and share[2, 2] == 0.0
+    assert share[3].tolist() == [1.0] * 4 and share[4].tolist() == [1.0] * 4
+    three = ResidualEvaluator(load_model('robotino'), FdiSettings())
+    assert three.kinematics.parity_basis.shape == (3, 0)
+    assert three.parity_confirmed(np.array([[0.5, -0.2, 0.1]]), np.zeros(1, dtype=bool)).tolist() == [[1.0] * 3]
+
+
+def test_the_torque_shift_allows_the_friction_of_a_speed_the_reading_cannot_resolve():
+    """Closed form, F_c a youBot's Coulomb level (0.03 N·m), v_s its step width 0.05 rad/s, the reading
+    good to 3 x speed_sigma = 0.03 rad/s: a wheel read within 0.03 of standing may stand, and its
+    friction may change by 2 F_c; at 0.06 by F_c (tanh(0.09 / 0.05) - tanh(0.03 / 0.05)); at
+    2 rad/s practically not. The shift's scale is the learned bound plus that, times the load
+    factor; a residual's step of 1.5 F_c on a wheel that creeps is then inside the shift test's
+    drift (no alarm), the same step at a resolved speed alarms."""
+    from youbot_fdi.model.profile import PlatformModel
+    base = load_model('youbot')
+    model = PlatformModel(replace(base.profile, dynamics=replace(base.profile.dynamics,
+                                                                 coulomb_friction=(0.03,) * 4)))
+    settings = replace(FdiSettings(), speed_sigma=0.01, breakaway_time=0.0)
+    dynamics = model.dynamics
+    coulomb, width = dynamics.coulomb, dynamics.parameters.coulomb_velocity_scale
+    assert width == 0.05 and coulomb.tolist() == [0.03] * 4
+    speeds = np.array([[0.0, -0.03, 0.06, 2.0]])
+    expected = coulomb * np.array([2.0, 2.0, math.tanh(0.09 / 0.05) - math.tanh(0.03 / 0.05),
+                                   math.tanh(2.03 / 0.05) - math.tanh(1.97 / 0.05)])
+    np.testing.assert_allclose(dynamics.coulomb_span(speeds, 0.03), expected[None], rtol=1e-12)
+    assert dynamics.coulomb_span(np.full(4, 0.06), 0.0).tolist() == [0.0] * 4  # an exact reading
+    evaluator = ResidualEvaluator(model, settings)
+    learned = np.full((1, 4), 0.1)
+    np.testing.assert_allclose(evaluator.shift_scale(learned, speeds, np.array([[1.5]])),
+                               learned + 1.5 * expected[None], rtol=1e-12)
+
+    learned_scale = 0.05  # [N·m]: a step of 1.5 F_c is 0.9 of it, 0.41 of it with 2 F_c more
+
+    def first_shift_alarm(speed):
+        decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
+        n, bound = len(model.wheel_names), np.ones(len(model.wheel_names))
+        velocity = np.array([speed, 2.0, 2.0, 2.0])
+        scale = evaluator.shift_scale(np.full((1, n), learned_scale), velocity[None], 1.0)[0]
+        for k in range(600):
+            values = {f: np.zeros(n) for f in FAMILIES}
+            values['torque'][0] = 0.0 if k < 400 else 1.5 * coulomb[0]  # inside the bound (1)
+            row = ResidualFrame(stamp=10.0 + k / 100.0, values=values,
+                                bounds={f: bound for f in FAMILIES}, velocity=velocity,
+                                torque=np.full(n, 0.5), velocity_mode=True, command=velocity,
+                                frozen=np.zeros(n, dtype=int), effort_frozen=np.zeros(n, dtype=int),
+                                position_frozen=np.zeros(n, dtype=int), silent=np.zeros(n),
+                                torque_scale=scale)
+            if any(e.level == 'ERROR' for e in decision.update(row)):
+                return k
+        return None
+
+    assert 1.5 * coulomb[0] / (learned_scale + 2.0 * coulomb[0]) < settings.shift_drift
+    assert first_shift_alarm(0.01) is None  # never evidence
+    # the shift 0.9 decays as the level follows (a = exp(-dt / shift_time_constant) a sample);
+    # its CUSUM sum_j (0.9 a^j - drift) reaches shift_threshold after J samples
+    keep, total, samples = math.exp(-0.01 / settings.shift_time_constant), 0.0, 0
+    while total < settings.shift_threshold:
+        total += 0.9 * keep ** samples - settings.shift_drift
+        samples += 1
+    assert first_shift_alarm(2.0) == pytest.approx(400 + samples - 1, abs=1)  # as above: +-1 row
