@@ -144,6 +144,21 @@ def condition_changes(level: Level, enter: np.ndarray, leave: np.ndarray) -> lis
     return changes
 
 
+@dataclass
+class _BlockStates:
+    """The states after each row (N, ...) of the last block :meth:`DecisionMaker._alarms_holding`
+    judged, for :meth:`DecisionMaker._rewind` (the torque levels keep theirs in
+    :class:`~youbot_fdi.fdi.recursions.ExponentialAverage`)."""
+
+    evidence: np.ndarray | None = None  # the magnitude CUSUMs (N, families, n)
+    shift: np.ndarray | None = None  # the torque shift CUSUMs (N, 2, n)
+    stamps: np.ndarray | None = None  # [s] (N,)
+    judged: np.ndarray | None = None  # the evidence in thresholds (N, families, n)
+    rise: np.ndarray | None = None  # [s] the shared families' last rise (N, shared, n)
+    below: np.ndarray | None = None  # [s] excited time below the threshold (N, families, n)
+    alarm: np.ndarray | None = None  # (N, families, n) bool
+
+
 class DecisionMaker:
     """Turns :class:`~youbot_fdi.fdi.residuals.ResidualFrame` s into :class:`FaultEvent` s.
 
@@ -178,7 +193,7 @@ class DecisionMaker:
         #: the sum (n + 1,) and count of the wheel speeds [rad/s] and load factors read since the
         #: torque levels' operating point started (count 0: none yet)
         self._operating_point = (np.zeros(self.n + 1), 0)
-        self._pass = {}  # the states after each row of the last block judged (see _rewind)
+        self._pass = _BlockStates()  # the states after each row of the last block judged
         self._rise = np.full(shape, NEVER)  # stamp [s] at which the evidence last rose to SHARED_SHARE
         self._below = np.zeros(shape)  # excited time below the threshold since the last alarm [s]
         self.load_level = OK  # of the load condition (OK or WARN)
@@ -323,7 +338,7 @@ class DecisionMaker:
         g = cusum(magnitude, self._evidence)
         shifted = bounded_cusum(shift_up_down, self._shift,
                                 SHIFT_CEILING * self.settings.shift_threshold)
-        self._pass['evidence'], self._pass['shift'] = g, shifted
+        self._pass.evidence, self._pass.shift = g, shifted
         self._evidence, self._shift = g[-1], shifted[-1]
         return self._judged(g, shifted)
 
@@ -391,7 +406,7 @@ class DecisionMaker:
         known = judged & (weight_before >= SHIFT_KNOWN_LEVEL)
         shift = np.divide(residual - level_before, scale, out=np.zeros_like(level_before),
                           where=known & (scale > 0.0))
-        self._pass['stamps'] = stamps
+        self._pass.stamps = stamps
         self._last_stamp = stamps[-1]
         return shift
 
@@ -434,13 +449,13 @@ class DecisionMaker:
                    != state[WHEEL_FAULT_FAMILIES].any(axis=0)).any(axis=1)).nonzero()[0]
             if not len(changes):
                 parts.append(alarm)
-                judged.append(self._pass['judged'])
+                judged.append(self._pass.judged)
                 self._remember_faults(alarm, stamps[part])
                 start, size = start + len(alarm), 2 * size
                 continue
             changed = int(changes[0])  # judged alike with the old hold up to here
             parts.append(alarm[:changed + 1])
-            judged.append(self._pass['judged'][:changed + 1])
+            judged.append(self._pass.judged[:changed + 1])
             self._rewind(changed)
             self._remember_faults(alarm[:changed + 1], stamps[start:start + changed + 1])
             # after a change the next may come soon (an alarm at its threshold): the rest is
@@ -452,14 +467,14 @@ class DecisionMaker:
 
     def _rewind(self, row):
         """Go back to the state after ``row`` of the last block :meth:`_alarms_holding` judged
-        (from the per-row states it kept in ``_pass``)."""
+        (from the per-row states it kept, :class:`_BlockStates`)."""
         states = self._pass
-        self._evidence, self._shift = states['evidence'][row], states['shift'][row]
+        self._evidence, self._shift = states.evidence[row], states.shift[row]
         self._level.rewind(row)
         self._typical_bound.rewind(row)
-        self._last_stamp = states['stamps'][row]
-        self._rise[SHARED_FAMILIES] = states['rise'][row]
-        self._below, self.alarm = states['below'][row], states['alarm'][row]
+        self._last_stamp = states.stamps[row]
+        self._rise[SHARED_FAMILIES] = states.rise[row]
+        self._below, self.alarm = states.below[row], states.alarm[row]
 
     def _faults_elsewhere(self, alarm, stamps):
         """Rows x wheels (N, n) at ``stamps`` (N,) [s] beside another wheel's fault: one whose
@@ -503,7 +518,7 @@ class DecisionMaker:
         step = weight * self.settings.evidence_interval  # [s] the time each row counts for
         evidence = self.evidence(z, self.torque_shift(torque, torque_bound, torque_scale, stamps,
                                                       hold, fresh), weight)
-        self._pass['judged'] = evidence
+        self._pass.judged = evidence
         over = evidence >= threshold
         over[:, SHARED_FAMILIES] &= ~self._shared(before[SHARED_FAMILIES], evidence[:, SHARED_FAMILIES],
                                                  z[:, SHARED_FAMILIES], stamps, elsewhere)
@@ -523,7 +538,7 @@ class DecisionMaker:
         last_set = np.maximum.accumulate(np.where(raised, index, -1), axis=0)
         last_clear = np.maximum.accumulate(np.where(below >= release, index, -1), axis=0)
         alarm = np.where(last_set > last_clear, True, np.where(last_clear > last_set, False, self.alarm))
-        self._pass['below'], self._pass['alarm'] = below, alarm
+        self._pass.below, self._pass.alarm = below, alarm
         self._below, self.alarm = below[-1], alarm[-1]
         return alarm
 
@@ -546,12 +561,12 @@ class DecisionMaker:
         up = evidence >= level
         beside = elsewhere[:, None, :] & (z < s.second_fault_score) if elsewhere.any() else None
         if not up.any():  # nothing shared (nearly every live row): no rise, nothing to compare
-            self._pass['rise'] = self._rise[SHARED_FAMILIES][None].repeat(len(up), axis=0)
+            self._pass.rise = self._rise[SHARED_FAMILIES][None].repeat(len(up), axis=0)
             return up if beside is None else beside
         was_up = np.concatenate([(before >= level)[None], up[:-1]])
         rise = np.where(up & ~was_up, np.asarray(stamps, dtype=float)[:, None, None], NEVER)
         rise = np.maximum(np.maximum.accumulate(rise, axis=0), self._rise[SHARED_FAMILIES])
-        self._pass['rise'] = rise
+        self._pass.rise = rise
         self._rise[SHARED_FAMILIES] = rise[-1]
         together = (up[..., None, :]
                     & (np.abs(rise[..., :, None] - rise[..., None, :]) <= s.shared_window))
