@@ -14,9 +14,11 @@ import pytest
 from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.fdi.recursions import NEVER
-from youbot_fdi.fdi.residuals import FAMILIES, ResidualBatch, ResidualFrame
+from youbot_fdi.fdi.residuals import FAMILIES, ResidualBatch
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
+
+from frames import torque_frame
 
 FAST_EXCEPT = ()  # `make check`: every test here (the unit tests of the core, under a minute)
 
@@ -199,23 +201,12 @@ def test_the_operating_point_is_the_same_over_a_block_and_row_by_row(model, rows
     np.testing.assert_array_equal(one_by_one, expected)
 
 
-def frame(model, stamp, torque_score, speed=2.0):
-    n = len(model.wheel_names)
-    values = {f: np.zeros(n) for f in FAMILIES}
-    values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
-    return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
-                         velocity=np.full(n, speed), torque=np.full(n, 0.5), velocity_mode=True,
-                         command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
-                         effort_frozen=np.zeros(n, dtype=int), position_frozen=np.zeros(n, dtype=int),
-                         silent=np.zeros(n))
-
-
 def first_alarm_time(model, rate, score, seconds=1.0):
     """When a constant torque score on one wheel first alarms [s from the first sample]."""
     settings = replace(FdiSettings(), breakaway_time=0.0)
     decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
     for k in range(int(seconds * rate)):
-        if any(e.level == 'ERROR' for e in decision.update(frame(model, 10.0 + k / rate, score))):
+        if any(e.level == 'ERROR' for e in decision.update(torque_frame(model, 10.0 + k / rate, score))):
             return k / rate
     return math.inf
 
@@ -272,11 +263,11 @@ def test_a_torque_shift_is_evidence_only_at_the_operating_point_of_its_level(mod
     decision = DecisionMaker(model.wheel_names, s, load_residual_data())
     rate = 100.0
     for k in range(int(4.0 * rate)):
-        assert not decision.update(frame(model, 10.0 + k / rate, -0.5))
+        assert not decision.update(torque_frame(model, 10.0 + k / rate, -0.5))
     first = math.inf
     for k in range(int(4.0 * rate), int(5.0 * rate)):
         stamp = 10.0 + k / rate
-        if any(e.level == 'ERROR' for e in decision.update(frame(model, stamp, 0.5, speed_after))):
+        if any(e.level == 'ERROR' for e in decision.update(torque_frame(model, stamp, 0.5, speed=speed_after))):
             first = min(first, stamp - 14.0)
     if alarms:
         intervals = math.ceil(s.shift_threshold / (1.0 - s.shift_drift)) - 1
@@ -315,14 +306,14 @@ def test_evidence_that_drains_holds_no_new_alarm(model):
     n = len(model.wheel_names)
 
     def scores(first, second):
-        f = frame(model, 0.0, 0.0)
+        f = torque_frame(model, 0.0, 0.0)
         values = dict(f.values, command=np.array([first, second, 0.0, 0.0]))
         return values
 
     plan = [(3.0, 3.0)] * 4 + [(0.0, 0.5)] * 8 + [(0.0, 2.5)] * 4
     events = []
     for k, (first, second) in enumerate(plan):
-        f = replace(frame(model, 10.0 + 0.01 * k, 0.0), values=scores(first, second))
+        f = replace(torque_frame(model, 10.0 + 0.01 * k, 0.0), values=scores(first, second))
         events += [(k, e.wheel) for e in decision.update(f) if e.level == 'ERROR']
     threshold = s.family_thresholds[FAMILIES.index('command')]
     assert 4 * 2.0 >= threshold  # both over the threshold together: shared
@@ -346,7 +337,7 @@ def test_beside_another_wheels_alarm_only_a_clear_excess_is_a_second_fault(model
 
     def frames(plan):
         for k, (first, second) in enumerate(plan):
-            f = frame(model, 10.0 + 0.01 * k, 0.0)
+            f = torque_frame(model, 10.0 + 0.01 * k, 0.0)
             yield replace(f, values=dict(f.values, command=np.array([first, 0.0, 0.0, 0.0]),
                                          torque=np.array([0.0, second, 0.0, 0.0])))
 

@@ -12,10 +12,12 @@ from youbot_fdi.fdi.observer import signed_torque
 from youbot_fdi.app.config import build_pipeline, load_residual_data, residual_data_for
 from youbot_fdi.app.replay import replay_recording
 from youbot_fdi.fdi.pipeline import FdiPipeline
-from youbot_fdi.fdi.residuals import FAMILIES, ResidualFrame, ResidualGenerator
+from youbot_fdi.fdi.residuals import ResidualGenerator
 from youbot_fdi.samples import message_time
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.profile import load_model
+
+from frames import torque_frame
 
 # `make check` (marker fast, conftest.py) takes every test here but these: identifications (the
 # ``calibrated`` fixture is one, half a minute on a slow day) and the real recordings, which stay
@@ -170,21 +172,10 @@ def test_identify_reports_the_coverage_of_its_bounds(calibrated, capsys):
 
 
 # ---------------------------------------------------------------------- evidence accumulation
-def _frame(model, stamp, torque_score, position_frozen=0, speed=2.0):
-    n = len(model.wheel_names)
-    values = {f: np.zeros(n) for f in FAMILIES}
-    values['torque'] = np.array([torque_score, 0.0, 0.0, 0.0])
-    return ResidualFrame(stamp=stamp, values=values, bounds={f: np.ones(n) for f in FAMILIES},
-                         velocity=np.full(n, speed), torque=np.full(n, 0.5), velocity_mode=True,
-                         command=np.full(n, 2.0), frozen=np.zeros(n, dtype=int),
-                         effort_frozen=np.zeros(n, dtype=int),
-                         position_frozen=np.array([position_frozen, 0, 0, 0]), silent=np.zeros(n))
-
-
 def _first_alarm(model, scores):
     decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
     for k, score in enumerate(scores):
-        if any(e.level == 'ERROR' for e in decision.update(_frame(model, 10.0 + 0.01 * k, score))):
+        if any(e.level == 'ERROR' for e in decision.update(torque_frame(model, 10.0 + 0.01 * k, score))):
             return k
     return None
 
@@ -205,7 +196,7 @@ def test_a_single_spike_is_not_an_alarm_and_a_large_fault_is_found_at_once(model
 def _events(model, scores, interval=0.01):
     decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
     return [(k, e) for k, score in enumerate(scores)
-            for e in decision.update(_frame(model, 10.0 + interval * k, score))]
+            for e in decision.update(torque_frame(model, 10.0 + interval * k, score))]
 
 
 def test_a_start_from_rest_is_not_evidence_but_the_same_excess_later_is(model):
@@ -221,7 +212,7 @@ def test_a_start_from_rest_is_not_evidence_but_the_same_excess_later_is(model):
     def alarms(rows):
         decision = DecisionMaker(model.wheel_names, settings, load_residual_data())
         return [k for k, (speed, score) in enumerate(rows)
-                for e in decision.update(_frame(model, 10.0 + interval * k, score, speed=speed))
+                for e in decision.update(torque_frame(model, 10.0 + interval * k, score, speed=speed))
                 if e.level == 'ERROR']
 
     rolling = [(2.0, 0.3)] * 100
@@ -259,7 +250,7 @@ def test_a_position_repeating_while_the_wheel_turns_is_a_frozen_sensor(model):
     decision = DecisionMaker(model.wheel_names, FdiSettings(), load_residual_data())
     events = []
     for k in range(5):
-        events += decision.update(_frame(model, 10.0 + 0.03 * k, 0.0, position_frozen=k + 1))
+        events += decision.update(torque_frame(model, 10.0 + 0.03 * k, 0.0, position_frozen=k + 1))
     assert [(e.level, e.wheel, e.fault) for e in events] == [('ERROR', 'wheel_joint_fl', 'encoder_freeze')]
 
 
@@ -596,7 +587,7 @@ def test_the_calibrated_range_warn_is_the_same_frame_by_frame_and_in_a_block(mod
     from youbot_fdi.faults import UNSEEN_OPERATING_POINT
     settings = FdiSettings()
     masks = [0.0] * 10 + [2.0] * 5 + [0.0] * 20 + [6.0] * 3 + [0.0] * 250
-    frames = [changed(_frame(model, 10.0 + 0.01 * k, 0.1), outside_calibration=m)
+    frames = [changed(torque_frame(model, 10.0 + 0.01 * k, 0.1), outside_calibration=m)
               for k, m in enumerate(masks)]
     one = DecisionMaker(model.wheel_names, settings, load_residual_data())
     single = [e for f in frames for e in one.update(f)]
