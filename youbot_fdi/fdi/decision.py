@@ -354,8 +354,9 @@ class DecisionMaker:
                 w * (self.shift_scores(shift) - s.shift_drift))
 
     def shift_scores(self, shift: np.ndarray) -> np.ndarray:
-        """The scores (N, 2, n) the torque shift CUSUMs take from the shift scores ``shift``
-        (N, n): up and down, each capped at ``evidence_cap``."""
+        """The scores (N, 2, n) the torque shift CUSUMs (up, down) take from the torque shift
+        ``shift`` (N, n), in its scale (:meth:`torque_shift`): ``+shift`` and ``-shift``, each
+        capped at ``evidence_cap``."""
         cap = self.settings.evidence_cap
         capped = clip(shift, -cap, cap)[:, None]
         return np.concatenate([capped, -capped], axis=1)
