@@ -169,7 +169,8 @@ def test_the_torque_bound_remembers_a_manoeuvre_beyond_calibration_not_a_wheel_a
     wheel stopping dead, a reading frozen) is not remembered: the residual is there to show it;
     on a base whose speeds always fit one (three wheels) no row is."""
     learned = dict(zip(BOUND_TERMS['torque'], (0.05, 0.0, 0.1, 0.2)))
-    settings = replace(FdiSettings(), torque_feature_range=(math.inf, 0.5, 2.0, 1.0), **learned)
+    settings = replace(FdiSettings(), torque_feature_range=(math.inf, 0.5, 2.0, 1.0),
+                       calibrated_slip=0.05, speed_sigma=0.01, **learned)
     evaluator = ResidualEvaluator(model, settings)
     tau = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
     weight = max(learned['torque_inertia_fraction'], bound_weights(PRIOR_SETTINGS, 'torque')[1])
@@ -177,38 +178,34 @@ def test_the_torque_bound_remembers_a_manoeuvre_beyond_calibration_not_a_wheel_a
     stamp = 50.0 + dt * np.arange(rows)
     features = np.tile([1.0, 0.2, 0.5, 0.5], (rows, 4, 1))
     features[0, 2, 1] = 0.5 + excess
-    rigid, fresh = np.ones(rows, dtype=bool), np.zeros(rows, dtype=bool)
-    added = evaluator._remembered_torque_extrapolation(features, rigid, stamp, fresh)
+    beyond = evaluator.bound_parts('torque', features)[1]
+    assert beyond[0, 2] == pytest.approx(weight * excess) and np.all(np.delete(beyond.ravel(), 2) == 0.0)
+    motion = np.tile(model.kinematics.inverse(np.array([0.8, -0.5, 2.0])), (rows, 1))  # fits
+    null = np.linalg.svd(model.kinematics.jacobian.T)[2][-1]
+    unfit = motion.copy()
+    unfit[0] += 0.5 * null / np.abs(null).max()  # the row beyond the range fits no motion
+    assert evaluator.fit_a_motion(motion).all() and evaluator.fit_a_motion(unfit).tolist() == [False] + [True] * (rows - 1)
+    fresh = np.zeros(rows, dtype=bool)
+    added = evaluator._remembered_torque_extrapolation(beyond, motion, stamp, fresh)
     expected = np.zeros((rows, 4))
     expected[1:, 2] = weight * excess * np.exp(-(stamp[1:] - stamp[0]) / tau)
     np.testing.assert_allclose(added, expected, rtol=1e-9, atol=1e-12)
-    assert evaluator.bound_parts('torque', features[:1])[1][0, 2] == pytest.approx(weight * excess)
     one_by_one = ResidualEvaluator(model, settings)
     by_row = np.concatenate([one_by_one._remembered_torque_extrapolation(
-        features[k:k + 1], rigid[k:k + 1], stamp[k:k + 1], fresh[k:k + 1]) for k in range(rows)])
+        beyond[k:k + 1], motion[k:k + 1], stamp[k:k + 1], fresh[k:k + 1]) for k in range(rows)])
     np.testing.assert_array_equal(by_row, added)
     restart = fresh.copy()
     restart[4] = True
-    after = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(features, rigid, stamp,
+    after = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, motion, stamp,
                                                                                restart)
     np.testing.assert_allclose(after[:4], expected[:4], rtol=1e-9, atol=1e-12)
     assert np.all(after[4:] == 0.0)
-    alone = rigid.copy()
-    alone[0] = False  # the wheels' speeds fit no motion in the row beyond the range
-    unfit = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(features, alone, stamp,
+    alone = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, unfit, stamp,
                                                                                fresh)
-    assert np.all(unfit == 0.0)
-    # in update_batch the rows come from the speeds: a rigid motion's fit, a wheel's jump's not
-    slipping = replace(settings, calibrated_slip=0.05, speed_sigma=0.01)
-    judged = ResidualEvaluator(model, slipping)
-    null = np.linalg.svd(model.kinematics.jacobian.T)[2][-1]
-    speeds = np.stack([model.kinematics.inverse(np.array([0.8, -0.5, 2.0])),
-                       model.kinematics.inverse(np.array([0.8, -0.5, 2.0])) + 0.5 * null / np.abs(null).max()])
-    assert judged.fit_no_motion(speeds).tolist() == [False, True]
-    assert judged.fit_a_motion(speeds).tolist() == [True, False]
+    assert np.all(alone == 0.0)
     # no calibrated slip, or three wheels (which always fit a motion): no row shows a manoeuvre
-    assert not evaluator.fit_a_motion(speeds).any()
-    three = ResidualEvaluator(load_model('robotino'), replace(settings, calibrated_slip=0.05))
+    assert not ResidualEvaluator(model, replace(settings, calibrated_slip=math.inf)).fit_a_motion(motion).any()
+    three = ResidualEvaluator(load_model('robotino'), settings)
     assert not three.fit_a_motion(np.zeros((2, 3))).any()
 
 

@@ -717,12 +717,13 @@ class ResidualEvaluator:
         # a current-mode row's bound is of effort [N·m]: the speed's memory is not added to it
         return np.where(settling | ~velocity_mode[:, None], 0.0, carried)
 
-    def _remembered_torque_extrapolation(self, torque_f, rigid, stamp, restart):
+    def _remembered_torque_extrapolation(self, beyond, velocity, stamp, restart):
         """What the torque bound (N, n) adds for the manoeuvres of earlier rows beyond calibration
         which the base still remembers: the part of the torque bound beyond calibration's range
-        (its features ``torque_f`` (N, n, k)) in the rows whose wheel speeds fit a rigid motion
-        (``rigid`` (N,)), carried as a peak that decays with the loop's slowest time constant,
-        less the row's own (which the bound has). Continues (and leaves) the state.
+        (``beyond`` (N, n) [N·m], :meth:`bound_parts`; None: not calibrated) in the rows whose
+        wheel speeds ``velocity`` (N, n) [rad/s] fit a rigid motion (:meth:`fit_a_motion`),
+        carried as a peak that decays with the loop's slowest time constant, less the row's own
+        (which the bound has). Continues (and leaves) the state.
 
         Why: the torque residual's features (the inertial torque, the current's change) describe
         the row; an error the model made in a transient it extrapolated (the wheels slipping
@@ -737,10 +738,14 @@ class ResidualEvaluator:
         and is what the residual is there to show. A base of three wheels always fits a motion:
         its speeds cannot tell a manoeuvre from a fault, so nothing is remembered there (the
         Robotino folds: remembered, a jammed wheel was found in 12 of 86 runs, 86 without)."""
-        beyond = self.bound_parts('torque', torque_f)[1]
         if beyond is None:
             return 0.0
-        manoeuvre = np.where(rigid[:, None], beyond, 0.0)
+        reference, level = self._torque_extrapolated
+        if np.isneginf(level).all() and not beyond.any():  # nothing beyond, none remembered
+            if restart.any():  # (nearly every row, so the gate is not worked out)
+                self._torque_extrapolated = (stamp[np.flatnonzero(restart)[-1]], level)
+            return 0.0
+        manoeuvre = np.where(self.fit_a_motion(velocity)[:, None], beyond, 0.0)
         carried, self._torque_extrapolated = self._remembered(
             manoeuvre, ~restart[:, None], stamp, restart, self._torque_extrapolated)
         return np.maximum(0.0, carried + manoeuvre - beyond)  # the peak less the row's own
@@ -886,9 +891,10 @@ class ResidualEvaluator:
                 self.beyond_calibration({'effort': effort_f}))
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
-        torque_u = self.bound('torque', torque_f)
+        torque_within, torque_beyond = self.bound_parts('torque', torque_f)
+        torque_u = torque_within if torque_beyond is None else torque_within + torque_beyond
         torque_bound = torque_u + torque_a + self._remembered_torque_extrapolation(
-            torque_f, self.fit_a_motion(velocity), stamp, restart)
+            torque_beyond, velocity, stamp, restart)
         slipping = self.slipping(velocity, stamp)
         if slipping.any():  # beyond calibration: the bound wider, every wheel named in the WARN
             torque_bound = np.where(slipping[:, None], self.settings.slip_bound_factor * torque_bound,
