@@ -741,8 +741,9 @@ class ResidualEvaluator:
         if beyond is None:
             return 0.0
         reference, level = self._torque_extrapolated
-        if np.isneginf(level).all() and not beyond.any():  # nothing beyond, none remembered
-            if restart.any():  # (nearly every row, so the gate is not worked out)
+        # nothing beyond, none remembered (nearly every row): the gate is not worked out
+        if np.isneginf(level).all() and not beyond.any():
+            if restart.any():  # the reference a restart sets, as in _remembered
                 self._torque_extrapolated = (stamp[np.flatnonzero(restart)[-1]], level)
             return 0.0
         manoeuvre = np.where(self.fit_a_motion(velocity)[:, None], beyond, 0.0)
