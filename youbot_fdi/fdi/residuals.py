@@ -740,11 +740,9 @@ class ResidualEvaluator:
         Robotino folds: remembered, a jammed wheel was found in 12 of 86 runs, 86 without)."""
         if beyond is None:
             return 0.0
-        reference, level = self._torque_extrapolated
-        # nothing beyond, none remembered (nearly every row): the gate is not worked out
-        if np.isneginf(level).all() and not beyond.any():
-            if restart.any():  # the reference a restart sets, as in _remembered
-                self._torque_extrapolated = (stamp[np.flatnonzero(restart)[-1]], level)
+        idle = self._idle(beyond, stamp, restart, self._torque_extrapolated)
+        if idle is not None:  # nearly every row: the gate is not worked out
+            self._torque_extrapolated = idle
             return 0.0
         manoeuvre = np.where(self.fit_a_motion(velocity)[:, None], beyond, 0.0)
         carried, self._torque_extrapolated = self._remembered(
@@ -756,11 +754,10 @@ class ResidualEvaluator:
         ``counted`` (N, n), decaying at the loop's forget rate, less each row's own, and the
         state after the last row: ``state`` is (reference stamp [s], the log of the peak carried
         to it (n,), -inf: none); a row that ``restart`` s (N,) forgets everything before it."""
+        idle = self._idle(beyond, stamp, restart, state)
+        if idle is not None:
+            return 0.0, idle
         reference, level = state
-        if np.isneginf(level).all() and not beyond.any():  # nothing beyond, none remembered
-            if restart.any():  # the reference a restart sets, as below
-                reference = stamp[np.flatnonzero(restart)[-1]]
-            return 0.0, (reference, level)
         excess = np.where(counted, beyond, 0.0)
         if not restart.any():  # one stretch (always live)
             carried, levels = decaying_peak(excess, (stamp - reference)[:, None], self._forget_rate,
@@ -779,6 +776,18 @@ class ResidualEvaluator:
             start = first + 1
         carried = parts[0] if len(parts) == 1 else np.concatenate(parts)
         return carried - excess, (reference, level)
+
+    @staticmethod
+    def _idle(beyond, stamp, restart, state):
+        """The state of :meth:`_remembered` after rows in which nothing is ``beyond``
+        calibration (N, n) and none is remembered (nearly every row), or None where something is:
+        only a restart (``restart`` (N,) at ``stamp`` (N,) [s]) moves its reference."""
+        reference, level = state
+        if not np.isneginf(level).all() or beyond.any():
+            return None
+        if restart.any():  # the reference a restart sets, as in _remembered
+            reference = stamp[np.flatnonzero(restart)[-1]]
+        return reference, level
 
     def _encoder_terms(self, position, prev_position, mean_speed, change, step):
         """(residual, features) of the encoder family."""
