@@ -259,15 +259,18 @@ class DecisionMaker:
         """Rows (N,) of speeds ``velocity`` (N, n) [rad/s] and load factors ``load_factor`` (N,)
         [-] in which the wheels leave the operating point the torque levels were learned at, which
         then starts afresh there. The operating point is the mean of the speeds and of the load
-        factor since it started; a row leaves it when some wheel's speed differs from that mean by
-        more than ``shift_operating_range`` of the fastest wheel's mean speed (or ``stuck_speed``,
-        if more: slower is standing) plus the reading's noise (``SPEED_NOISE_SIGMAS`` x
-        ``speed_sigma``: a quantised or noisy reading is not a move), or the load factor differs
-        from its mean by more than ``shift_operating_range`` of it. The model's bias depends on
-        the operating point (the contact law, the friction split, the speed, and the load factor
-        the explained friction is scaled by: a floor the factor has moved to is a model the level
-        was not learned with), so a level learned at one says nothing of the residual at another;
-        a fault changes the residual at the same one. Leaves the reference after the last row."""
+        factor since it started; a row leaves it when some wheel's speed differs from its mean by
+        more than ``shift_operating_range`` of that mean (or ``stuck_speed``, if more: slower is
+        standing) plus the reading's noise (``SPEED_NOISE_SIGMAS`` x ``speed_sigma``: a quantised
+        or noisy reading is not a move), or the load factor differs from its mean by more than
+        ``shift_operating_range`` of it. The model's bias depends on the operating point (the
+        contact law, the friction split, the speed, and the load factor the explained friction is
+        scaled by: a floor the factor has moved to is a model the level was not learned with), so
+        a level learned at one says nothing of the residual at another; a fault changes the
+        residual at the same one. Each wheel's range is its own: its bias is a function of its
+        own speed (friction is not linear in it: the Coulomb step, the contact law), which a
+        slow wheel beside a fast one changes by as much as the fast one's. Leaves the reference
+        after the last row."""
         points = np.concatenate([np.asarray(velocity, dtype=float),
                                  np.asarray(load_factor, dtype=float).reshape(-1, 1)], axis=1)
         total, count = self._operating_point
@@ -310,9 +313,9 @@ class DecisionMaker:
         (...)."""
         s, n = self.settings, self.n
         speeds = means[..., :n]
-        allowance = (np.maximum(s.shift_operating_range * np.abs(speeds).max(axis=-1), s.stuck_speed)
+        allowance = (np.maximum(s.shift_operating_range * np.abs(speeds), s.stuck_speed)
                      + SPEED_NOISE_SIGMAS * s.speed_sigma)
-        return ((np.abs(points[..., :n] - speeds).max(axis=-1) > allowance)
+        return ((np.abs(points[..., :n] - speeds) > allowance).any(axis=-1)
                 | (np.abs(points[..., n] - means[..., n]) > s.shift_operating_range * means[..., n]))
 
     def sample_weights(self, stamps: np.ndarray) -> np.ndarray:
