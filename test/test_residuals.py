@@ -1,5 +1,5 @@
 """``youbot_fdi/fdi/residuals.py``: the residual evaluator's bounds (widening beyond the
-calibrated range, the remembered extrapolation of a transient, the loop's compliance), the
+calibrated range, the remembered transient, the loop's compliance), the
 frozen-reading and silence tests, slip, the parity relations and the torque shift's scale; each
 against a hand-derived closed form."""
 from dataclasses import replace
@@ -45,12 +45,14 @@ def test_bounds_beyond_the_calibrated_range_widen_with_the_prior(model):
     assert beyond.tolist() == [[True], [False]]
 
 
-def test_the_command_bound_remembers_an_extrapolated_transient_as_the_loop_does(model):
-    """A row whose predicted acceleration is X beyond what calibration covered widens the command
-    bound by w X (w: the larger of the learned and the default weight); the rows after it, inside
-    the range again, keep w X exp(-(t - t_0) / tau), tau the loop's slowest time constant (the
-    time a guessed start takes to fade), the same row by row; nothing while settling, nothing
-    from before a restart."""
+def test_the_command_bound_remembers_a_transient_as_the_loop_does(model):
+    """The command bound's transient part, T = w_s min(step, range) + w_a min(acceleration,
+    range) plus every feature's excess X beyond calibration's range weighed w (the larger of the
+    learned and the default weight), is remembered: the rows after it keep the peak
+    max(T_k, T_0 exp(-(t - t_0) / tau)) less their own T_k, tau the loop's slowest time constant
+    (the time a guessed start takes to fade); the same row by row; nothing while settling,
+    nothing from before a restart, nothing for a current-mode row. A step within the range is
+    remembered as one beyond it is: the model's loop may be slower than identified."""
     learned = dict(zip(BOUND_TERMS['command'], (0.02, 0.01, 0.05, 0.004)))
     settings = replace(FdiSettings(), command_feature_range=(math.inf, 10.0, 3.0, 5.0), **learned)
     evaluator = ResidualEvaluator(model, settings)
@@ -60,32 +62,38 @@ def test_the_command_bound_remembers_an_extrapolated_transient_as_the_loop_does(
     stamp = 100.0 + dt * np.arange(rows)
     features = np.tile([1.0, 2.0, 0.5, 1.0], (rows, 4, 1))
     features[0, 1, 3] = 5.0 + excess
+    features[0, 2, 2] = 2.5  # a step of 2.5 rad/s on wheel 2, within the range (3)
     mode, calm = np.ones(rows, dtype=bool), np.zeros((rows, 4), dtype=bool)
     fresh = np.zeros(rows, dtype=bool)
-    added = evaluator._remembered_extrapolation(features, mode, calm, stamp, fresh)
+    added = evaluator._remembered_transient(features, mode, calm, stamp, fresh)
+    steady = 0.5 * learned['command_transient_fraction'] + 1.0 * learned['command_delay']
+    peaks = np.array([0.0, 0.5 * learned['command_transient_fraction'] + 5.0 * learned['command_delay']
+                      + weight * excess,
+                      2.5 * learned['command_transient_fraction'] + learned['command_delay'], 0.0])
     expected = np.zeros((rows, 4))
-    expected[1:, 1] = weight * excess * np.exp(-(stamp[1:] - stamp[0]) / tau)
+    expected[1:] = np.maximum(0.0, peaks * np.exp(-(stamp[1:, None] - stamp[0]) / tau) - steady)
+    assert expected[1:, 1:3].min() > 0.0 and np.all(expected[:, [0, 3]] == 0.0)
     np.testing.assert_allclose(added, expected, rtol=1e-9, atol=1e-12)
     assert evaluator.bound('command', features[:1])[0, 1] == pytest.approx(
         features[0, 1] @ np.array(list(learned.values())) - 20.0 * learned['command_delay']
         + weight * excess)  # the row itself: its own excess, in the bound already
     one_by_one = ResidualEvaluator(model, settings)
-    by_row = np.concatenate([one_by_one._remembered_extrapolation(
+    by_row = np.concatenate([one_by_one._remembered_transient(
         features[k:k + 1], mode[k:k + 1], calm[k:k + 1], stamp[k:k + 1], fresh[k:k + 1])
         for k in range(rows)])
     np.testing.assert_array_equal(by_row, added)
-    settling = evaluator._remembered_extrapolation(features, mode, ~calm, stamp + 1.0, fresh)
+    settling = evaluator._remembered_transient(features, mode, ~calm, stamp + 1.0, fresh)
     assert np.all(settling == 0.0)
     restart = fresh.copy()
     restart[3] = True
-    after = ResidualEvaluator(model, settings)._remembered_extrapolation(features, mode, calm, stamp,
-                                                                        restart)
+    after = ResidualEvaluator(model, settings)._remembered_transient(features, mode, calm, stamp,
+                                                                     restart)
     np.testing.assert_allclose(after[:3], expected[:3], rtol=1e-9, atol=1e-12)
-    assert np.all(after[3:] == 0.0)
+    np.testing.assert_allclose(after[3:], 0.0, atol=1e-12)  # the rows' own transients only
     current_mode = mode.copy()
     current_mode[2:] = False  # an effort bound [N·m] takes nothing of the speed's memory
-    mixed = ResidualEvaluator(model, settings)._remembered_extrapolation(features, current_mode, calm,
-                                                                        stamp, fresh)
+    mixed = ResidualEvaluator(model, settings)._remembered_transient(features, current_mode, calm,
+                                                                     stamp, fresh)
     np.testing.assert_allclose(mixed[:2], expected[:2], rtol=1e-9, atol=1e-12)
     assert np.all(mixed[2:] == 0.0)
 

@@ -78,6 +78,10 @@ BOUND_TERMS = {
     'encoder': ('encoder_sigma', 'encoder_speed_fraction', 'encoder_change_fraction',
                 'timing_jitter'),
 }
+#: The command bound's terms of the predicted transient (its distance to the command, its
+#: acceleration), which the loop remembers after the transient has ended
+#: (:meth:`ResidualEvaluator._remembered_transient`).
+COMMAND_TRANSIENT_TERMS = ('command_transient_fraction', 'command_delay')
 #: A position reading that repeats exactly while the wheel should have turned this many encoder
 #: ticks within the interval is evidence of a frozen sensor [ticks].
 FROZEN_MIN_TICKS = 2.0
@@ -395,12 +399,15 @@ class ResidualEvaluator:
         #: constant [1/s] (0: a mode that never decays)
         self._forget_rate = 1.0 / memory if memory > 0.0 else math.inf
         self._disturbance = np.zeros(self.n)  # that disturbance, low-passed (n,) [N·m]
-        #: the command bound's extrapolation the loop still remembers: (reference stamp [s], the
-        #: log of its peak carried to it (n,), -inf: none) (:meth:`_remembered_extrapolation`)
-        self._extrapolated = (0.0, np.full(self.n, -np.inf))
+        #: the command bound's transient the loop still remembers: (reference stamp [s], the
+        #: log of its peak carried to it (n,), -inf: none) (:meth:`_remembered_transient`)
+        self._transient = (0.0, np.full(self.n, -np.inf))
         #: the same for the torque bound (:meth:`_remembered_torque_extrapolation`)
         self._torque_extrapolated = (0.0, np.full(self.n, -np.inf))
         self._coefficients = {family: bound_weights(settings, family) for family in BOUND_TERMS}
+        #: the command features of :data:`COMMAND_TRANSIENT_TERMS`, and their learned weights
+        self._transient_terms = [BOUND_TERMS['command'].index(name) for name in COMMAND_TRANSIENT_TERMS]
+        self._transient_weights = self._coefficients['command'][self._transient_terms]
         self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
         self._calibrated = {family: bool(np.isfinite(r).any()) for family, r in self._ranges.items()}
         #: beyond these the WARN names a wheel: the ranges widened by their margin
@@ -454,7 +461,7 @@ class ResidualEvaluator:
         self._silent_since = np.full(self.n, sample.stamp)
         self._answering = np.ones(self.n, dtype=bool)
         self._disturbance = np.zeros(self.n)
-        self._extrapolated = (sample.stamp, np.full(self.n, -np.inf))
+        self._transient = (sample.stamp, np.full(self.n, -np.inf))
         self._torque_extrapolated = (sample.stamp, np.full(self.n, -np.inf))
         self._slip_stamp = NEVER
 
@@ -695,27 +702,38 @@ class ResidualEvaluator:
         self._disturbance = smoothed[-1]
         return smoothed
 
-    def _remembered_extrapolation(self, velocity_f, velocity_mode, settling, stamp, restart):
-        """What the command bound (N, n) adds for the extrapolation of earlier rows the loop
-        still remembers: the part of the bound beyond calibration's range (velocity-mode rows),
-        carried as a peak that decays with the loop's slowest time constant, less this row's own
+    def _remembered_transient(self, velocity_f, velocity_mode, settling, stamp, restart):
+        """What the command bound (N, n) adds for the transients of earlier rows the loop still
+        remembers: the bound's transient part (the terms of :data:`COMMAND_TRANSIENT_TERMS`
+        within calibration's range, and every feature's part beyond it; velocity-mode rows),
+        carried as a peak that decays with the loop's slowest time constant, less the row's own
         (which the bound has); 0 while settling. Continues (and leaves) the state.
 
-        Why: the bound's features describe the predicted path now; an error the model made in a
-        transient it extrapolated (an aggressive stop judged from a gentle calibration, a payload's
-        inertia, a current limit acting) is still in the wheel's speed after the transient has
-        ended, and fades only as the loop forgets it, as a guessed start does
-        (:attr:`settle_time`). Judged by the row's own features, the bound had collapsed to its
-        in-range size while the error stood (the randomized suite's `runaway` false alarms
-        0.05-0.2 s after hard stops and reversals)."""
+        Why: the bound's features describe the predicted path now, and the model's error in a
+        transient is still in the wheel's speed after the predicted transient has ended: it
+        fades only as the loop forgets it, as a guessed start does (:attr:`settle_time`). Two
+        errors do this. A transient beyond what calibration covered (an aggressive stop judged
+        from a gentle calibration, a payload's inertia, a current limit acting): judged by the
+        row's own features the bound had collapsed to its in-range size while the error stood
+        (the randomized suite's `runaway` false alarms 0.05-0.2 s after hard stops and
+        reversals). And the loop's own response: ``identify`` cannot tell a slower loop from a
+        later one on a gentle calibration (a lagging reading or current is fitted as more delay
+        and higher gains), so the model's path reaches a command sooner than the wheel does and
+        the wheel lags it for as long as the loop remembers the step (randomized plants whose
+        gains were identified 1.5-2.5 times too high: `runaway` alarms a tenth of a second after
+        ordinary command steps, in range)."""
         beyond = self.bound_parts('command', velocity_f)[1]
-        if beyond is None:  # not calibrated: no range to extrapolate from
+        if beyond is None:  # not calibrated: no learned transient, no range
             return 0.0
+        inside = np.minimum(velocity_f[..., self._transient_terms],
+                            self._ranges['command'][self._transient_terms])
+        transient = inside @ self._transient_weights + beyond
         counted = velocity_mode[:, None] & ~restart[:, None]
-        carried, self._extrapolated = self._remembered(beyond, counted, stamp, restart,
-                                                       self._extrapolated)
-        # a current-mode row's bound is of effort [N·m]: the speed's memory is not added to it
-        return np.where(settling | ~velocity_mode[:, None], 0.0, carried)
+        carried, self._transient = self._remembered(transient, counted, stamp, restart,
+                                                    self._transient)
+        # a current-mode row's bound is of effort [N·m]: the speed's memory is not added to it;
+        # a peak that is the row's own comes back from the logarithms a rounding off zero
+        return np.where(settling | ~velocity_mode[:, None], 0.0, np.maximum(0.0, carried))
 
     def _remembered_torque_extrapolation(self, beyond, velocity, stamp, restart):
         """What the torque bound (N, n) adds for the manoeuvres of earlier rows beyond calibration
@@ -872,8 +890,8 @@ class ResidualEvaluator:
             velocity, torque, p.from_commands, p.commands_before,
             p.commanded, p.commanded_before, p.commanded_latest, p.velocity_mode[:, None], settling,
             load * p.unseen_friction, self._loop_disturbance(torque_r, step, restart), step)
-        command_u = command_u + self._remembered_extrapolation(velocity_f, p.velocity_mode, settling,
-                                                               stamp, restart)
+        command_u = command_u + self._remembered_transient(velocity_f, p.velocity_mode, settling,
+                                                           stamp, restart)
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
                                                    velocity - prev_velocity, step)
