@@ -727,8 +727,9 @@ class ResidualEvaluator:
             return 0.0
         inside = np.minimum(velocity_f[..., self._transient_terms],
                             self._ranges['command'][self._transient_terms])
-        transient = inside @ self._transient_weights + beyond
         counted = velocity_mode[:, None] & ~restart[:, None]
+        # zero where not counted, so that a current-mode stretch is idle (_idle) as it should be
+        transient = np.where(counted, inside @ self._transient_weights + beyond, 0.0)
         carried, self._transient = self._remembered(transient, counted, stamp, restart,
                                                     self._transient)
         # a current-mode row's bound is of effort [N·m]: the speed's memory is not added to it;
