@@ -727,11 +727,9 @@ class ResidualEvaluator:
             return 0.0
         inside = np.minimum(velocity_f[..., self._transient_terms],
                             self._ranges['command'][self._transient_terms])
-        counted = velocity_mode[:, None] & ~restart[:, None]
-        # zero where not counted, so that a current-mode stretch is idle (_idle) as it should be
-        transient = np.where(counted, inside @ self._transient_weights + beyond, 0.0)
-        carried, self._transient = self._remembered(transient, counted, stamp, restart,
-                                                    self._transient)
+        # zero in current mode, so that a current-mode stretch is idle (_idle)
+        transient = np.where(velocity_mode[:, None], inside @ self._transient_weights + beyond, 0.0)
+        carried, self._transient = self._remembered(transient, stamp, restart, self._transient)
         # a current-mode row's bound is of effort [N·m]: the speed's memory is not added to it;
         # a peak that is the row's own comes back from the logarithms a rounding off zero
         return np.where(settling | ~velocity_mode[:, None], 0.0, np.maximum(0.0, carried))
@@ -764,24 +762,25 @@ class ResidualEvaluator:
             self._torque_extrapolated = idle
             return 0.0
         manoeuvre = np.where(self.fit_a_motion(velocity)[:, None], beyond, 0.0)
-        carried, self._torque_extrapolated = self._remembered(
-            manoeuvre, ~restart[:, None], stamp, restart, self._torque_extrapolated)
+        carried, self._torque_extrapolated = self._remembered(manoeuvre, stamp, restart,
+                                                              self._torque_extrapolated)
         return np.maximum(0.0, carried + manoeuvre - beyond)  # the peak less the row's own
 
-    def _remembered(self, beyond, counted, stamp, restart, state):
-        """The peaks (N, n) of a bound's part ``beyond`` calibration (N, n) in the rows
-        ``counted`` (N, n), decaying at the loop's forget rate, less each row's own, and the
-        state after the last row: ``state`` is (reference stamp [s], the log of the peak carried
-        to it (n,), -inf: none); a row that ``restart`` s (N,) forgets everything before it."""
-        idle = self._idle(beyond, stamp, restart, state)
+    def _remembered(self, values, stamp, restart, state):
+        """The peaks (N, n) of a bound's part to remember, ``values`` (N, n) (>= 0; 0 where a
+        row has nothing to remember), decaying at the loop's forget rate, less each row's own,
+        and the state after the last row: ``state`` is (reference stamp [s], the log of the peak
+        carried to it (n,), -inf: none); a row that ``restart`` s (N,) forgets everything before
+        it and adds nothing itself."""
+        idle = self._idle(values, stamp, restart, state)
         if idle is not None:
             return 0.0, idle
         reference, level = state
-        excess = np.where(counted, beyond, 0.0)
         if not restart.any():  # one stretch (always live)
-            carried, levels = decaying_peak(excess, (stamp - reference)[:, None], self._forget_rate,
+            carried, levels = decaying_peak(values, (stamp - reference)[:, None], self._forget_rate,
                                             level)
-            return carried - excess, (reference, levels[-1])
+            return carried - values, (reference, levels[-1])
+        excess = np.where(restart[:, None], 0.0, values)
         parts, start = [], 0
         for first in [*np.flatnonzero(restart), len(stamp)]:
             if first > start:  # rows since the last restart, from the state before them
@@ -797,12 +796,12 @@ class ResidualEvaluator:
         return carried - excess, (reference, level)
 
     @staticmethod
-    def _idle(beyond, stamp, restart, state):
-        """The state of :meth:`_remembered` after rows in which nothing is ``beyond``
-        calibration (N, n) and none is remembered (nearly every row), or None where something is:
-        only a restart (``restart`` (N,) at ``stamp`` (N,) [s]) moves its reference."""
+    def _idle(values, stamp, restart, state):
+        """The state of :meth:`_remembered` after rows in which nothing is to be remembered
+        (``values`` (N, n) all 0) and none is remembered (nearly every row), or None where
+        something is: only a restart (``restart`` (N,) at ``stamp`` (N,) [s]) moves its reference."""
         reference, level = state
-        if not np.isneginf(level).all() or beyond.any():
+        if not np.isneginf(level).all() or values.any():
             return None
         if restart.any():  # the reference a restart sets, as in _remembered
             reference = stamp[np.flatnonzero(restart)[-1]]
