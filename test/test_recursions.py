@@ -136,5 +136,19 @@ def test_run_lengths_and_last_values_equal_their_loops(flags, carry, seed):
         latest = values[k] if restart[k] else latest
         expected.append(latest)
     np.testing.assert_array_equal(last_true_value(restart, values, -1.0), expected)
+    # values per column (N, 3) at each column's own latest flag, row by row the same
+    table = np.random.default_rng(seed + 1).random((rows, 3))
+    initial = np.array(carry, dtype=float)
+    latest, expected = initial.copy(), []
+    for k in range(rows):
+        latest = np.where(flags[k], table[k], latest)
+        expected.append(latest)
+    block = last_true_value(flags, table, initial)
+    np.testing.assert_array_equal(block, np.reshape(expected, (rows, 3)))
+    carried, by_row = initial.copy(), []
+    for k in range(rows):
+        carried = last_true_value(flags[k:k + 1], table[k:k + 1], carried)[0]
+        by_row.append(carried)
+    np.testing.assert_array_equal(np.reshape(by_row, (rows, 3)), block)
 
 

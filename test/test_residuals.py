@@ -98,6 +98,67 @@ def test_the_command_bound_remembers_a_transient_as_the_loop_does(model):
     assert np.all(mixed[2:] == 0.0)
 
 
+def test_a_current_that_rises_pushing_away_from_the_command_is_no_live_loop(model):
+    """A PI loop's output changes by k_p de/dt + k_i e: while its current pushes a wheel away from
+    its command (beyond three torque_sigma, the error beyond three speed_sigma, the error to the
+    latest command sent of the same sign) and the error does not shrink, that current can only
+    fall, whatever the gains and the limit. What it rose since the stretch began is counted
+    (0 where it fell, where the error shrank, where the current pushes toward the command, where
+    the latest command lies the other way, in current mode, after a restart); the same row by
+    row."""
+    sigma = 0.05  # [N·m]; three of it: 0.15
+    evaluator = ResidualEvaluator(model, replace(FdiSettings(), torque_sigma=sigma, speed_sigma=0.02))
+    rows = 6
+    velocity = np.tile([2.0, 2.0, 2.0, 2.0], (rows, 1))
+    velocity[:, 2] = 2.0 - 0.1 * np.arange(rows)  # wheel 2 nears its command (0)
+    target = np.zeros((rows, 4))
+    target[:, 0] = [0.0, 0.0, -0.5, -0.5, -1.0, -1.0]  # wheel 0's error grows: -2 .. -3 rad/s
+    latest = target.copy()
+    latest[3, 0] = 3.0  # sent, not yet in force: the loop may already chase it (toward)
+    torque = np.column_stack([[0.3, 0.35, 0.4, 0.45, 0.5, 0.6],    # rises: no live loop's
+                              [0.5, 0.45, 0.4, 0.35, 0.3, 0.25],   # falls: a loop unwinding
+                              [0.3, 0.35, 0.4, 0.45, 0.5, 0.55],   # rises, but the error shrinks
+                              np.full(rows, -0.4)])                # pushes toward the command
+    mode, fresh = np.ones(rows, dtype=bool), np.zeros(rows, dtype=bool)
+    rise = evaluator._rise_pushing_away(velocity, torque, target, latest, mode, fresh)
+    expected = np.zeros((rows, 4))
+    # from 0.3 at the start; row 3 is no stretch (the latest command lies beyond the speed), so
+    # row 4 starts a new one at 0.5
+    expected[:, 0] = [0.0, 0.05, 0.1, 0.0, 0.0, 0.1]
+    np.testing.assert_allclose(rise, expected, atol=1e-12)
+    one_by_one = ResidualEvaluator(model, evaluator.settings)
+    by_row = np.concatenate([one_by_one._rise_pushing_away(
+        velocity[k:k + 1], torque[k:k + 1], target[k:k + 1], latest[k:k + 1], mode[k:k + 1],
+        fresh[k:k + 1]) for k in range(rows)])
+    np.testing.assert_array_equal(by_row, rise)
+    restart = fresh.copy()
+    restart[1] = True  # the stretch starts again at row 2 (0.4)
+    again = ResidualEvaluator(model, evaluator.settings)._rise_pushing_away(
+        velocity, torque, target, latest, mode, restart)
+    np.testing.assert_allclose(again[:, 0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.1], atol=1e-12)
+    current_mode = mode.copy()
+    current_mode[:2] = False
+    mixed = ResidualEvaluator(model, evaluator.settings)._rise_pushing_away(
+        velocity, torque, target, latest, current_mode, fresh)
+    np.testing.assert_allclose(mixed[:, 0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.1], atol=1e-12)
+    unsigned = ResidualEvaluator(model, evaluator.settings)
+    unsigned.signed_effort = False  # a magnitude has no direction to judge
+    assert np.all(unsigned._rise_pushing_away(velocity, torque, target, latest, mode, fresh) == 0.0)
+    # judged as the command residual: the speed error, scored rise / (3 sqrt(2) sigma), where
+    # that is more than the path's own score, and wherever the path is not judged (settling)
+    residual, bound = np.full((rows, 4), 0.3), np.full((rows, 4), 1.0)  # the path's: 0.3
+    settling = np.zeros((rows, 4), dtype=bool)
+    settling[1, 0] = True
+    error = velocity - target
+    judged_r, judged_u = evaluator._judge_loop_direction(residual, bound, settling, error, rise)
+    noise = 3.0 * math.sqrt(2.0) * sigma  # 0.212 N·m: rows 2 and 5 (0.1) score 0.47, row 1 0.24
+    picked = np.zeros((rows, 4), dtype=bool)
+    picked[[1, 2, 5], 0] = True  # row 1 scores below the path, but the path is not judged there
+    np.testing.assert_allclose(np.abs(judged_r) / judged_u,
+                               np.where(picked, rise / noise, 0.3), rtol=1e-12)
+    np.testing.assert_array_equal(judged_r, np.where(picked, error, residual))
+
+
 def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):
     """The frozen-position test counts a wheel as turning only where its speed less
     SPEED_NOISE_SIGMAS x speed_sigma moves the encoder by FROZEN_MIN_TICKS in the interval."""

@@ -129,15 +129,19 @@ def run_lengths(flags: np.ndarray, carry: np.ndarray, restart: np.ndarray | None
 
 
 def last_true_value(flags: np.ndarray, values: np.ndarray, initial: float | np.ndarray) -> np.ndarray:
-    """For each row, ``values`` (N,) at the latest row at or before it where ``flags`` (N,) or
-    (N, n) holds (column by column), else ``initial`` (scalar, or (n,))."""
+    """For each row, ``values`` (N,) or (N, n) at the latest row at or before it where ``flags``
+    (N,) or (N, n) holds (column by column), else ``initial`` (scalar, or (n,))."""
     flags = np.asarray(flags, dtype=bool)
     values = np.asarray(values)
+    columns = values.ndim == 2
     if len(flags) == 1:
-        return np.where(flags, values.reshape((1,) + (1,) * (flags.ndim - 1)), initial)
+        return np.where(flags, values if columns else values.reshape((1,) + (1,) * (flags.ndim - 1)),
+                        initial)
     rows = np.arange(len(flags)).reshape((-1,) + (1,) * (flags.ndim - 1))
     index = np.maximum.accumulate(np.where(flags, rows, -1), axis=0)
-    return np.where(index >= 0, values[np.maximum(index, 0)], initial)
+    picked = (np.take_along_axis(values, np.maximum(index, 0), axis=0) if columns
+              else values[np.maximum(index, 0)])
+    return np.where(index >= 0, picked, initial)
 
 
 def cusum(steps: np.ndarray, g0: np.ndarray) -> np.ndarray:

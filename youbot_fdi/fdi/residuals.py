@@ -22,7 +22,9 @@ wheel ``<w>``:
     reach from the commands (firmware emulation at its own period, with current limit). Current mode:
     measured minus commanded effort. Sensitive to a wheel that does not do what it is told (runaway).
     Coulomb friction at the measured speed, as for the observer; where the loop saturates (current
-    or integral limit) it is stepped period by period.
+    or integral limit) it is stepped period by period. In velocity mode also the loop's direction,
+    which needs no gains: a current pushing the wheel away from its command that rises while the
+    error does not shrink is no live PI loop's (:meth:`ResidualEvaluator._rise_pushing_away`).
 ``encoder_<w>``
     Position increment minus speed times the interval: a reading that freezes while the wheel moves.
 
@@ -399,6 +401,9 @@ class ResidualEvaluator:
         #: constant [1/s] (0: a mode that never decays)
         self._forget_rate = 1.0 / memory if memory > 0.0 else math.inf
         self._disturbance = np.zeros(self.n)  # that disturbance, low-passed (n,) [N·m]
+        #: per wheel, the stretch of pushing away from its command (:meth:`_rise_pushing_away`):
+        #: (in one, the current [N·m] and the speed error [rad/s] at its start)
+        self._away = (np.zeros(self.n, dtype=bool), np.zeros(self.n), np.zeros(self.n))
         #: the command bound's transient the loop still remembers: (reference stamp [s], the
         #: log of its peak carried to it (n,), -inf: none) (:meth:`_remembered_transient`)
         self._transient = (0.0, np.full(self.n, -np.inf))
@@ -461,6 +466,7 @@ class ResidualEvaluator:
         self._silent_since = np.full(self.n, sample.stamp)
         self._answering = np.ones(self.n, dtype=bool)
         self._disturbance = np.zeros(self.n)
+        self._away = (np.zeros(self.n, dtype=bool), np.zeros(self.n), np.zeros(self.n))
         self._transient = (sample.stamp, np.full(self.n, -np.inf))
         self._torque_extrapolated = (sample.stamp, np.full(self.n, -np.inf))
         self._slip_stamp = NEVER
@@ -702,6 +708,55 @@ class ResidualEvaluator:
         self._disturbance = smoothed[-1]
         return smoothed
 
+    def _rise_pushing_away(self, velocity, torque, target, latest, velocity_mode, restart):
+        """Per wheel (N, n) [N·m], how much the torque of a velocity-mode wheel whose current pushes
+        it away from its command has risen since that began, in rows where its speed error has
+        not shrunk since (0 elsewhere): a wheel pushes away where its measured torque, beyond
+        three ``torque_sigma``, has the opposite sign of its speed error to the command in force
+        and to the latest sent (the loop may act on either), beyond three ``speed_sigma``.
+        Continues (and leaves) the state; 0 in current mode or without a signed effort.
+
+        Why: a PI loop's output changes by k_p de/dt + k_i e. Pushing away, it is not saturated
+        (the integral that would need is beyond its limit), so while the error keeps its sign
+        and does not shrink, both terms lower the current that pushes away, whatever the gains
+        and the current limit. A current that rises instead is not a live loop's (a runaway: the
+        wheel holds a set-point of its own against the base). Where the current reaches what
+        calibration never saw, the command path is not judged (observer.py); this is."""
+        if not self.signed_effort or not velocity_mode.any():
+            self._away = (np.zeros(self.n, dtype=bool), np.zeros(self.n), np.zeros(self.n))
+            return np.zeros_like(velocity)
+        error = target - velocity
+        away = np.abs(error) > self._speed_uncertainty
+        was_away, start_torque, start_error = self._away
+        if away.any():  # the usual row of steady driving has none: no stretch, and none goes on
+            size = np.abs(torque)
+            away &= ((torque * error < 0.0) & (torque * (latest - velocity) < 0.0)
+                     & (size > SPEED_NOISE_SIGMAS * self.settings.torque_sigma)
+                     & velocity_mode[:, None] & ~restart[:, None])
+        if not away.any():
+            self._away = (np.zeros(self.n, dtype=bool), start_torque, start_error)
+            return np.zeros_like(velocity)
+        begins = away & ~shifted(was_away, away)
+        start_torque = last_true_value(begins, size, start_torque)
+        start_error = last_true_value(begins, np.abs(error), start_error)
+        self._away = (away[-1], start_torque[-1], start_error[-1])
+        rise = np.where(away & (np.abs(error) >= start_error), size - start_torque, 0.0)
+        return np.maximum(rise, 0.0)
+
+    def _judge_loop_direction(self, residual, bound, settling, error, rise):
+        """The command residual and bound (N, n) with the loop's direction judged: where a
+        current pushing away from the command rose by ``rise`` [N·m] (:meth:`_rise_pushing_away`),
+        the residual is the speed error to the command ``error`` [rad/s] and its score is the rise
+        over what two readings of the torque differ by (three ``torque_sigma``, times sqrt 2),
+        wherever that scores more than the path's own (always, while the path is not judged)."""
+        if not rise.any():  # the usual row
+            return residual, bound
+        noise = SPEED_NOISE_SIGMAS * math.sqrt(2.0) * self.settings.torque_sigma
+        score = rise / noise
+        judged = (rise > 0.0) & (settling | (score * bound > np.abs(residual)))
+        return (np.where(judged, error, residual),
+                np.where(judged, np.abs(error) / np.where(judged, score, 1.0), bound))
+
     def _remembered_transient(self, velocity_f, velocity_mode, settling, stamp, restart):
         """What the command bound (N, n) adds for the transients of earlier rows the loop still
         remembers: the bound's transient part (the terms of :data:`COMMAND_TRANSIENT_TERMS`
@@ -892,6 +947,10 @@ class ResidualEvaluator:
             load * p.unseen_friction, self._loop_disturbance(torque_r, step, restart), step)
         command_u = command_u + self._remembered_transient(velocity_f, p.velocity_mode, settling,
                                                            stamp, restart)
+        command_r, command_u = self._judge_loop_direction(
+            command_r, command_u, settling, velocity - p.commanded,
+            self._rise_pushing_away(velocity, torque, p.commanded, p.commanded_latest,
+                                    p.velocity_mode, restart))
         mean_speed = 0.5 * (velocity + prev_velocity)
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
                                                    velocity - prev_velocity, step)
