@@ -402,8 +402,8 @@ class ResidualEvaluator:
         self._forget_rate = 1.0 / memory if memory > 0.0 else math.inf
         self._disturbance = np.zeros(self.n)  # that disturbance, low-passed (n,) [N·m]
         #: per wheel, the stretch of pushing away from its command (:meth:`_rise_pushing_away`):
-        #: (in one, the current [N·m] and the speed error [rad/s] at its start)
-        self._away = (np.zeros(self.n, dtype=bool), np.zeros(self.n), np.zeros(self.n))
+        #: (in one, the torque [N·m] and the speed error's size [rad/s] at its start)
+        self._away = self._no_stretch()
         #: the command bound's transient the loop still remembers: (reference stamp [s], the
         #: log of its peak carried to it (n,), -inf: none) (:meth:`_remembered_transient`)
         self._transient = (0.0, np.full(self.n, -np.inf))
@@ -466,7 +466,7 @@ class ResidualEvaluator:
         self._silent_since = np.full(self.n, sample.stamp)
         self._answering = np.ones(self.n, dtype=bool)
         self._disturbance = np.zeros(self.n)
-        self._away = (np.zeros(self.n, dtype=bool), np.zeros(self.n), np.zeros(self.n))
+        self._away = self._no_stretch()
         self._transient = (sample.stamp, np.full(self.n, -np.inf))
         self._torque_extrapolated = (sample.stamp, np.full(self.n, -np.inf))
         self._slip_stamp = NEVER
@@ -723,25 +723,31 @@ class ResidualEvaluator:
         wheel holds a set-point of its own against the base). Where the current reaches what
         calibration never saw, the command path is not judged (observer.py); this is."""
         if not self.signed_effort or not velocity_mode.any():
-            self._away = (np.zeros(self.n, dtype=bool), np.zeros(self.n), np.zeros(self.n))
+            self._away = self._no_stretch()
             return np.zeros_like(velocity)
         error = target - velocity
-        away = np.abs(error) > self._speed_uncertainty
-        was_away, start_torque, start_error = self._away
+        distance = np.abs(error)
+        away = distance > self._speed_uncertainty
         if away.any():  # the usual row of steady driving has none: no stretch, and none goes on
             size = np.abs(torque)
             away &= ((torque * error < 0.0) & (torque * (latest - velocity) < 0.0)
                      & (size > SPEED_NOISE_SIGMAS * self.settings.torque_sigma)
                      & velocity_mode[:, None] & ~restart[:, None])
         if not away.any():
-            self._away = (np.zeros(self.n, dtype=bool), start_torque, start_error)
+            self._away = self._no_stretch()
             return np.zeros_like(velocity)
+        was_away, start_torque, start_distance = self._away
         begins = away & ~shifted(was_away, away)
         start_torque = last_true_value(begins, size, start_torque)
-        start_error = last_true_value(begins, np.abs(error), start_error)
-        self._away = (away[-1], start_torque[-1], start_error[-1])
-        rise = np.where(away & (np.abs(error) >= start_error), size - start_torque, 0.0)
+        start_distance = last_true_value(begins, distance, start_distance)
+        self._away = (away[-1], start_torque[-1], start_distance[-1])
+        rise = np.where(away & (distance >= start_distance), size - start_torque, 0.0)
         return np.maximum(rise, 0.0)
+
+    def _no_stretch(self):
+        """The state of :meth:`_rise_pushing_away` where no wheel pushes away (its start values
+        are read only where a stretch goes on)."""
+        return np.zeros(self.n, dtype=bool), np.zeros(self.n), np.zeros(self.n)
 
     def _judge_loop_direction(self, residual, bound, settling, error, rise):
         """The command residual and bound (N, n) with the loop's direction judged: where a
