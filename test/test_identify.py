@@ -2,15 +2,17 @@
 import numpy as np
 import pytest
 
-from youbot_fdi.fdi.identify import (_descend, for_search, RecordingArrays, SEARCH_SECONDS,
-                                     SEARCH_WINDOWS)
+from youbot_fdi.fdi.identify import (DELAY_COARSE_STEPS, descend_grid, for_search, RecordingArrays,
+                                     search_grid, SEARCH_SECONDS, SEARCH_WINDOWS)
 
 FAST_EXCEPT = ()  # all of it in ``make check``
 
 
-def test_delay_refit_walks_downhill_from_the_delay_found_before_and_stops_at_the_minimum():
-    """Errors (d - 7)^2 on a grid 0..19: from 3 the walk goes up the grid to 7 and tries 8
-    (worse); back down, 6 is already known worse: nothing else is tried."""
+def test_the_delay_grid_is_searched_coarsely_then_step_by_step_around_the_best():
+    """Errors (d - 7)^2 on a grid 0..19, DELAY_COARSE_STEPS = 4: the coarse points 0, 4, 8, 12,
+    16 and the last, 19; the best of them is 8, and every point within 4 steps of it (5..11)
+    is tried: 7 wins. Nothing else is tried."""
+    assert DELAY_COARSE_STEPS == 4
     grid = np.arange(20.0)
     tried = []
 
@@ -18,10 +20,30 @@ def test_delay_refit_walks_downhill_from_the_delay_found_before_and_stops_at_the
         tried.append(d)
         return (d - 7.0) ** 2
 
-    best, errors = _descend(error, grid, 3, np.full(len(grid), np.nan))
-    assert best == 7.0
+    best, errors = search_grid(error, grid)
+    assert best == 7
+    assert sorted(tried) == [0.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 16.0, 19.0]
+    assert np.isfinite(errors).sum() == len(tried) and errors[7] == 0.0
+
+
+def test_the_delay_walks_downhill_a_stride_at_a_time_and_stops_at_the_minimum():
+    """Errors (d - 7)^2 on a grid 0..19: from 3 a walk of stride 1 goes up the grid to 7 and
+    tries 8 (worse); back down, 6 is already known worse: nothing else is tried. With stride 4
+    from 18: 14, 10, 6 (better each time), 2 (worse); the other way 22 is off the grid: 6."""
+    grid = np.arange(20.0)
+    tried = []
+
+    def error(d):
+        tried.append(d)
+        return (d - 7.0) ** 2
+
+    errors = np.full(len(grid), np.nan)
+    assert descend_grid(error, grid, 3, errors) == 7
     assert sorted(tried) == [3.0, 4.0, 5.0, 6.0, 7.0, 8.0]  # 6 is known worse than 7: not again
     assert np.isnan(errors[9:]).all() and np.isnan(errors[:3]).all()
+    tried.clear()
+    assert descend_grid(error, grid, 18, np.full(len(grid), np.nan), stride=4) == 6
+    assert tried == [18.0, 14.0, 10.0, 6.0, 2.0]
 
 
 def test_the_searches_see_at_most_search_seconds_in_windows_over_the_whole_recording():

@@ -33,6 +33,19 @@ def test_profile_round_trips_through_a_mapping():
         assert a.roller_angle == pytest.approx(b.roller_angle)
 
 
+def test_the_loops_inertias_round_trip_and_are_left_out_where_not_given():
+    """``dynamics.loop_inertias`` (identify writes them where the readings do not see the wheels
+    accelerate): a mapping of mass and inertias that comes back as it went; a profile without
+    them writes none."""
+    from dataclasses import replace
+    profile = load_profile('youbot')
+    assert profile.dynamics.loop_inertias == () and 'loop_inertias' not in profile_to_dict(profile)['dynamics']
+    looped = replace(profile, dynamics=replace(profile.dynamics, loop_inertias=(23.58, 0.945, 0.00946)))
+    written = profile_to_dict(looped)['dynamics']['loop_inertias']
+    assert written == {'mass': 23.58, 'yaw_inertia': 0.945, 'wheel_inertia': 0.00946}
+    assert parse_profile(profile_to_dict(looped), source='round trip').dynamics == looped.dynamics
+
+
 @pytest.fixture()
 def youbot_dict():
     return yaml.safe_load(profile_path('youbot').read_text())
@@ -61,6 +74,11 @@ _DELETE = object()
     (('dynamics', 'yaw_inertia'), 'heavy', r'dynamics\.yaw_inertia must be a number'),
     (('dynamics', 'wheel_inertia'), [1e-3, 1e-3], r'dynamics\.wheel_inertia must be one number or a list of 4'),
     (('dynamics', 'mas'), 1.0, r'dynamics\.mas is not a known key'),
+    (('dynamics', 'loop_inertias'), {'mass': 20.0, 'yaw_inertia': 1.0},
+     r'dynamics\.loop_inertias\.wheel_inertia is missing'),
+    (('dynamics', 'loop_inertias'), {'mass': 0.0, 'yaw_inertia': 1.0, 'wheel_inertia': 0.01},
+     r'dynamics\.loop_inertias\.mass must be > 0'),
+    (('dynamics', 'loop_inertias'), [20.0, 1.0, 0.01], r'dynamics\.loop_inertias must be a mapping'),
     (('drive', 'gear_ratio'), 0.0, r'drive\.gear_ratio must be > 0'),
     (('firmware', 'loop'), 'analog', r'firmware\.loop must be one of'),
     (('firmware', 'period'), float('inf'), r'firmware\.period must be finite'),

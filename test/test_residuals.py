@@ -104,8 +104,8 @@ def test_a_current_that_rises_pushing_away_from_the_command_is_no_live_loop(mode
     latest command sent of the same sign) and the error does not shrink, that current can only
     fall, whatever the gains and the limit. What it rose since the stretch began is counted
     (0 where it fell, where the error shrank, where the current pushes toward the command, where
-    the latest command lies the other way, in current mode, after a restart); the same row by
-    row."""
+    the latest command lies the other way, in current mode, after a restart, with
+    ``loop_direction`` off); the same row by row."""
     sigma = 0.05  # [N·m]; three of it: 0.15
     evaluator = ResidualEvaluator(model, replace(FdiSettings(), torque_sigma=sigma, speed_sigma=0.02))
     rows = 6
@@ -144,6 +144,8 @@ def test_a_current_that_rises_pushing_away_from_the_command_is_no_live_loop(mode
     unsigned = ResidualEvaluator(model, evaluator.settings)
     unsigned.signed_effort = False  # a magnitude has no direction to judge
     assert np.all(unsigned._rise_pushing_away(velocity, torque, target, latest, mode, fresh) == 0.0)
+    off = ResidualEvaluator(model, replace(evaluator.settings, loop_direction=False))  # identify's runs
+    assert np.all(off._rise_pushing_away(velocity, torque, target, latest, mode, fresh) == 0.0)
     # judged as the command residual: the speed error, scored rise / (3 sqrt(2) sigma), where
     # that is more than the path's own score, and wherever the path is not judged (settling)
     residual, bound = np.full((rows, 4), 0.3), np.full((rows, 4), 1.0)  # the path's: 0.3

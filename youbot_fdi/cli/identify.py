@@ -104,6 +104,10 @@ def run(args):
     if result.info.get('inertias_unseen'):
         print(f'  mass and inertias: {result.info["inertias_unseen"]}; their ± reaches the prior '
               'profile\'s values')
+    if profile.dynamics.loop_inertias:
+        mass, yaw, wheel = profile.dynamics.loop_inertias
+        print(f'  the velocity loop (stepped at its own period) moves the prior\'s: mass {mass:.4g} kg, '
+              f'J_z {yaw:.4g} kg·m², J_w {wheel:.4g} kg·m² (loop_inertias)')
     print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
           f'ki {profile.firmware.velocity_ki:.3g} A/rad')
     if 'input_delay' in result.fdi:

@@ -151,6 +151,11 @@ def commands_in_force(command_stamps: np.ndarray, stamps: np.ndarray, input_dela
     return index, none | (stamps - age_from > command_timeout)
 
 
+def _interval_key(dt: float) -> float:
+    """``dt`` [s] as the discretisations are cached: rounded to 0.1 ms, at least that."""
+    return max(round(float(dt), DT_KEY_DECIMALS), 10.0 ** -DT_KEY_DECIMALS)
+
+
 @functools.lru_cache(maxsize=DISCRETE_CACHE_SIZE)
 def _discretised(a_bytes: bytes, b_bytes: bytes, n: int, dt: float) -> tuple[np.ndarray, ...]:
     """(Phi, Gamma, Gamma^-1) of the wheel dynamics ``a``, ``b`` (n, n, as bytes: hashable) over
@@ -322,7 +327,12 @@ class ModelObserver:
         self._cache = {}
         firmware, drive = model.firmware, model.drive
         self.period = firmware.period
-        self._phi1, self._gamma1 = self._discrete(self.period)[:2]
+        # The firmware loop moves the inertias it moves (WheelDynamics.loop), whatever the
+        # readings relate their speeds to.
+        loop = dyn.loop
+        self._phi1, self._gamma1 = _discretised((-loop.mass_inverse @ loop.friction_matrix).tobytes(),
+                                                loop.mass_inverse.tobytes(), self.n,
+                                                _interval_key(self.period))[:2]
         self.kp, self.ki = firmware.velocity_kp, firmware.velocity_ki
         self.torque_per_amp = drive.torque_per_amp
         #: one firmware period of the saturating loop: speed' = [phi | gamma k_t] [speed; current]
@@ -368,7 +378,7 @@ class ModelObserver:
     def _discrete(self, dt):
         """(Phi, Gamma, Gamma^-1) over ``dt`` [s], cached per 0.1 ms (per observer, and across
         observers of the same dynamics: identify's searches build one per trial of the gains)."""
-        key = max(round(float(dt), DT_KEY_DECIMALS), 10.0 ** -DT_KEY_DECIMALS)
+        key = _interval_key(dt)
         if key not in self._cache:
             self._cache[key] = _discretised(self._a_v.tobytes(), self._b_v.tobytes(), self.n, key)
         return self._cache[key]

@@ -385,7 +385,7 @@ class ResidualEvaluator:
         self.loop_compliance = 1.0 / stiffness if stiffness > 0.0 else 0.0
         #: how fast a wheel's speed answers a torque disturbance under that gain, its own share of
         #: the inertia over the gain's stiffness, M_ii / (k_p k_t) (n,) [s] (0 without a loop)
-        self.loop_time_constant = np.diag(self.mass_matrix) * self.loop_compliance
+        self.loop_time_constant = np.diag(model.dynamics.loop.mass_matrix) * self.loop_compliance
         #: its inverse [1/s] (inf for 0 s: no memory; every step is positive)
         self._loop_rate = np.divide(1.0, self.loop_time_constant,
                                     out=np.full(self.n, np.inf), where=self.loop_time_constant > 0.0)
@@ -395,7 +395,7 @@ class ResidualEvaluator:
         #: ``1 / k_i``) fades only as fast as the loop's slowest mode; judged before, a wrong
         #: guess is judged as the wheel's fault. A loop with a weak integral forgets slowly (the
         #: Robotino's identified k_i / k_p = 0.06 /s: 17 s; a youBot's 0.09 s).
-        memory = slowest_time_constant(model.dynamics, drive.torque_per_amp, model.firmware)
+        memory = slowest_time_constant(model.dynamics.loop, drive.torque_per_amp, model.firmware)
         self.settle_time = max(settings.startup_time, SETTLE_TIME_CONSTANTS * memory)
         #: how fast the loop forgets an error of the predicted path: 1 / its slowest time
         #: constant [1/s] (0: a mode that never decays)
@@ -714,7 +714,8 @@ class ResidualEvaluator:
         not shrunk since (0 elsewhere): a wheel pushes away where its measured torque, beyond
         three ``torque_sigma``, has the opposite sign of its speed error to the command in force
         and to the latest sent (the loop may act on either), beyond three ``speed_sigma``.
-        Continues (and leaves) the state; 0 in current mode or without a signed effort.
+        Continues (and leaves) the state; 0 in current mode, without a signed effort or with
+        ``loop_direction`` off.
 
         Why: a PI loop's output changes by k_p de/dt + k_i e. Pushing away, it is not saturated
         (the integral that would need is beyond its limit), so while the error keeps its sign
@@ -722,7 +723,7 @@ class ResidualEvaluator:
         and the current limit. A current that rises instead is not a live loop's (a runaway: the
         wheel holds a set-point of its own against the base). Where the current reaches what
         calibration never saw, the command path is not judged (observer.py); this is."""
-        if not self.signed_effort or not velocity_mode.any():
+        if not self.signed_effort or not self.settings.loop_direction or not velocity_mode.any():
             self._away = self._no_stretch()
             return np.zeros_like(velocity)
         error = target - velocity

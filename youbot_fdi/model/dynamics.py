@@ -18,7 +18,10 @@ With the report's inertias (J_w = 1.35 kg·mm², J_z = 5.5 kg·mm²) M has a con
 1e4 and two modes of about 40 µs; forward Euler at any practical step explodes. This module
 discretises exactly: zero-order hold through the matrix exponential, valid for any step.
 """
-from dataclasses import dataclass
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+import functools
 
 import numpy as np
 import scipy.linalg
@@ -49,6 +52,11 @@ class DynamicParameters:
     #: D_r [N·m]: the torque each motor feels from its rollers' resistance to turning while the
     #: contact glides along them (:meth:`WheelDynamics.roller_drag_torque`); 0: none
     roller_drag: float = 0.0
+    #: (m [kg], J_z [kg·m²], J_w [kg·m²]): the inertias the firmware's velocity loop moves where
+    #: they are not these (``identify``: the prior's, where the torque readings come too seldom to
+    #: see the wheels accelerate and the fitted inertias only relate those readings to the
+    #: speeds); empty: the ones above
+    loop_inertias: tuple = ()
 
 
 def rolling_share(speed, slide, ratio):
@@ -142,6 +150,18 @@ class WheelDynamics:
                                    np.abs(self.drag_projection), 0.0)
         #: the rollers' drag acts (``roller_drag`` > 0 on wheels whose motors feel it)
         self.has_drag = parameters.roller_drag > 0.0 and bool(self.drag_share.any())
+
+    @functools.cached_property
+    def loop(self) -> WheelDynamics:
+        """The dynamics the firmware's velocity loop moves: these, with the parameters'
+        ``loop_inertias`` where given."""
+        inertias = self.parameters.loop_inertias
+        if not inertias:
+            return self
+        mass, yaw_inertia, wheel_inertia = inertias
+        return WheelDynamics(self.kinematics, replace(
+            self.parameters, mass=mass, yaw_inertia=yaw_inertia,
+            wheel_inertia=(wheel_inertia,) * self.n_wheels, loop_inertias=()))
 
     def state_space(self, friction_matrix=None):
         """Continuous state space of eq. 3.22.

@@ -27,6 +27,8 @@ Schema (units in brackets)::
       coulomb_velocity_scale: [rad/s]     # optional (0.05)
       roller_friction_ratio: [-]          # optional (0): contact friction law, identify fits it
       roller_drag: [N·m]                  # optional (0): rollers' resistance the motors feel, identify fits it
+      loop_inertias: {mass: [kg], yaw_inertia: [kg·m²], wheel_inertia: [kg·m²]}
+                                          # optional: what the velocity loop moves, where not the above
     firmware:
       period: [s]
       velocity_kp: [A/(rad/s)]
@@ -52,6 +54,8 @@ from youbot_fdi.model.kinematics import Kinematics
 from youbot_fdi.yamlio import load_yaml
 
 DEFAULT_COULOMB_VELOCITY_SCALE = 0.05  # [rad/s]
+LOOP_INERTIAS = 'loop_inertias'  # the dynamics key, and its names in DynamicParameters.loop_inertias order
+LOOP_INERTIA_NAMES = ('mass', 'yaw_inertia', 'wheel_inertia')
 
 
 class _Section:
@@ -209,9 +213,21 @@ def _parse_dynamics(section, n_wheels):
         coulomb_velocity_scale=section.number('coulomb_velocity_scale', minimum=0.0, strict=True,
                                               default=DEFAULT_COULOMB_VELOCITY_SCALE),
         roller_friction_ratio=section.number('roller_friction_ratio', minimum=0.0, default=0.0),
-        roller_drag=section.number('roller_drag', minimum=0.0, default=0.0))
+        roller_drag=section.number('roller_drag', minimum=0.0, default=0.0),
+        loop_inertias=_parse_loop_inertias(section))
     section.finish()
     return dynamics
+
+
+def _parse_loop_inertias(section):
+    """``dynamics.loop_inertias`` (optional): {mass, yaw_inertia, wheel_inertia} the firmware's
+    velocity loop moves, as (m, J_z, J_w); () where not given."""
+    if section.raw(LOOP_INERTIAS, required=False) is None:
+        return ()
+    inertias = section.section(LOOP_INERTIAS)
+    values = tuple(inertias.number(name, minimum=0.0, strict=True) for name in LOOP_INERTIA_NAMES)
+    inertias.finish()
+    return values
 
 
 def _parse_firmware(section):
@@ -320,7 +336,9 @@ def profile_to_dict(profile):
                      'coulomb_friction': [float(v) for v in dyn.coulomb_friction],
                      'coulomb_velocity_scale': dyn.coulomb_velocity_scale,
                      'roller_friction_ratio': dyn.roller_friction_ratio,
-                     'roller_drag': dyn.roller_drag},
+                     'roller_drag': dyn.roller_drag,
+                     **({LOOP_INERTIAS: dict(zip(LOOP_INERTIA_NAMES, map(float, dyn.loop_inertias)))}
+                        if dyn.loop_inertias else {})},
         'firmware': {'period': profile.firmware.period,
                      'velocity_kp': profile.firmware.velocity_kp,
                      'velocity_ki': profile.firmware.velocity_ki,
