@@ -327,9 +327,11 @@ def test_the_replay_benchmark_compares_with_decoding_in_the_same_run():
                                                                    seconds=seconds)
     assert identified.name == 'identify: the 12 s fault-free recording'
     assert identified.baseline == cases[0].value and identified.value > 0  # against its replay
-    # as a user runs them: a fresh interpreter each pays its start, so each takes longer
+    # as a user runs them: a fresh interpreter pays its start, so the replay (hundredths of a
+    # second in one process, its start tenths) takes longer; identify's seconds vary by more
+    # than a start on a shared machine, so its two times are not compared
     assert command_line.baseline_name == 'youbot-fdi replay of it'
-    assert command_line.value > identified.value and command_line.baseline > cases[0].value
+    assert command_line.value > 0 and command_line.baseline > cases[0].value
     names = [c.name for c in cases]
     assert names == ['replay: fault-free', 'replay: fault-free, mcap', 'replay: a fault at 10 %',
                      'replay: faults on two wheels', 'replay: fault-free, no --params']
