@@ -530,7 +530,8 @@ def _solve_dynamics(design, target, model, n, settings, rows=FitRows()):
                      viscous_friction=tuple(float(v) for v in solution[3:3 + n]),
                      coulomb_friction=tuple(float(v) for v in solution[3 + n:3 + 2 * n]),
                      roller_drag=(float(solution[3 + 2 * n]) if settings.fit_roller_drag
-                                  else prior.roller_drag))
+                                  else prior.roller_drag),
+                     loop_inertias=())  # a prior's loop inertias are not the fit's (identify sets them)
     info = {'torque_fit_r_squared': float(r_squared),
             'uncertainty': {name: float(sd) for name, sd in zip(names, deviation)},
             'uncertainty_noise': {name: float(sd) for name, sd in zip(names, posterior)},
@@ -1075,8 +1076,6 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
         dynamics = replace(dynamics, loop_inertias=(loop.mass, loop.yaw_inertia,
                                                     float(np.mean(loop.wheel_inertia))))
         info['loop_inertias'] = 'the prior\'s (the readings do not see the wheels accelerate)'
-    else:  # the fitted ones are the loop's too (a prior's own loop inertias not carried over)
-        dynamics = replace(dynamics, loop_inertias=())
     interval = float(np.median(np.diff(arrays.time)))
     info['sample_period'] = interval
     model = PlatformModel(replace(prior_model.profile, dynamics=dynamics))

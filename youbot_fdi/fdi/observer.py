@@ -48,6 +48,7 @@ from youbot_fdi.naming import wheel_suffix
 if TYPE_CHECKING:  # names in annotations only
     from collections.abc import Sequence
     from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model.dynamics import WheelDynamics
     from youbot_fdi.model.profile import PlatformModel
     from youbot_fdi.samples import CommandSample, JointSample
 
@@ -149,6 +150,14 @@ def commands_in_force(command_stamps: np.ndarray, stamps: np.ndarray, input_dela
         return index, none
     age_from = np.where(none, -np.inf, command_stamps[np.maximum(index, 0)]) + input_delay
     return index, none | (stamps - age_from > command_timeout)
+
+
+def _speed_dynamics(dynamics: WheelDynamics) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) (n, n) of the wheel speeds, speed' = A speed + B torque: the speed rows of
+    ``dynamics.state_space()`` (eq. 3.22)."""
+    a_matrix, b_matrix = dynamics.state_space()
+    n = dynamics.n_wheels
+    return np.ascontiguousarray(a_matrix[n:, n:]), np.ascontiguousarray(b_matrix[n:])
 
 
 def _interval_key(dt: float) -> float:
@@ -322,16 +331,14 @@ class ModelObserver:
         dyn = model.dynamics
         self.n = dyn.n_wheels
         self.friction = np.diag(dyn.friction_matrix)
-        self._a_v = -dyn.mass_inverse @ dyn.friction_matrix
-        self._b_v = dyn.mass_inverse
+        self._a_v, self._b_v = _speed_dynamics(dyn)
         self._cache = {}
         firmware, drive = model.firmware, model.drive
         self.period = firmware.period
         # The firmware loop moves the inertias it moves (WheelDynamics.loop), whatever the
         # readings relate their speeds to.
-        loop = dyn.loop
-        self._phi1, self._gamma1 = _discretised((-loop.mass_inverse @ loop.friction_matrix).tobytes(),
-                                                loop.mass_inverse.tobytes(), self.n,
+        loop_a, loop_b = _speed_dynamics(dyn.loop)
+        self._phi1, self._gamma1 = _discretised(loop_a.tobytes(), loop_b.tobytes(), self.n,
                                                 _interval_key(self.period))[:2]
         self.kp, self.ki = firmware.velocity_kp, firmware.velocity_ki
         self.torque_per_amp = drive.torque_per_amp
