@@ -1,9 +1,10 @@
 """Identification's search helpers, against hand-derived answers."""
 import numpy as np
 import pytest
+import scipy.optimize
 
-from youbot_fdi.fdi.identify import (DELAY_COARSE_STEPS, descend_grid, for_search, RecordingArrays,
-                                     search_grid, SEARCH_SECONDS, SEARCH_WINDOWS)
+from youbot_fdi.fdi.identify import (BroydenJacobian, DELAY_COARSE_STEPS, descend_grid, for_search,
+                                     RecordingArrays, search_grid, SEARCH_SECONDS, SEARCH_WINDOWS)
 
 FAST_EXCEPT = ()  # all of it in ``make check``
 
@@ -28,7 +29,7 @@ def test_the_delay_grid_is_searched_coarsely_then_step_by_step_around_the_best()
 
 def test_the_delay_walks_downhill_a_stride_at_a_time_and_stops_at_the_minimum():
     """Errors (d - 7)^2 on a grid 0..19: from 3 a walk of stride 1 goes up the grid to 7 and
-    tries 8 (worse); back down, 6 is already known worse: nothing else is tried. With stride 4
+    tries 8 (worse); the other way from 3, 2 is worse: nothing else is tried. With stride 4
     from 18: 14, 10, 6 (better each time), 2 (worse); the other way 22 is off the grid: 6."""
     grid = np.arange(20.0)
     tried = []
@@ -39,11 +40,20 @@ def test_the_delay_walks_downhill_a_stride_at_a_time_and_stops_at_the_minimum():
 
     errors = np.full(len(grid), np.nan)
     assert descend_grid(error, grid, 3, errors) == 7
-    assert sorted(tried) == [3.0, 4.0, 5.0, 6.0, 7.0, 8.0]  # 6 is known worse than 7: not again
-    assert np.isnan(errors[9:]).all() and np.isnan(errors[:3]).all()
+    assert sorted(tried) == [2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    assert np.isnan(errors[9:]).all() and np.isnan(errors[:2]).all()
     tried.clear()
     assert descend_grid(error, grid, 18, np.full(len(grid), np.nan), stride=4) == 6
     assert tried == [18.0, 14.0, 10.0, 6.0, 2.0]
+
+
+def test_a_walk_that_wins_a_tie_one_way_still_looks_the_other_way():
+    """A plateau at 1.0 over 5..9 (its point 6 a hair lower) and a valley at 2-3: from 5 the walk
+    up takes 6 (lower by 1e-12) and stops at 7; the walk down starts from 5 again, not from 6,
+    and finds the valley at 3 (0.5) through 4 (0.8), stopping at 2 (0.6)."""
+    grid = np.arange(10.0)
+    values = np.array([2.0, 1.5, 0.6, 0.5, 0.8, 1.0, 1.0 - 1e-12, 1.0, 1.0, 1.0])
+    assert descend_grid(lambda d: values[int(d)], grid, 5, np.full(len(grid), np.nan)) == 3
 
 
 def test_the_searches_see_at_most_search_seconds_in_windows_over_the_whole_recording():
@@ -166,3 +176,35 @@ def test_the_share_of_the_loops_answer_the_readings_see_follows_where_they_fall_
         pytest.approx(1.0, abs=0.1)
     effort = CommandBatch(time, np.zeros(len(time), dtype=bool), np.zeros((len(time), 4)))
     assert np.isnan(readings_seen_share(time, effort, tau))
+
+
+def test_the_gain_fits_jacobian_meets_the_secant_of_each_step_and_is_exact_on_a_linear_map():
+    """Residuals r(x) = M x - y, linear: the forward differences give M itself (two extra
+    evaluations, none after: a Broyden update of an exact Jacobian is zero), and least squares
+    with it lands on the closed form (M'M)^-1 M'y. On a nonlinear map the updated Jacobian
+    meets the secant condition J1 (x1 - x0) = r(x1) - r(x0) exactly."""
+    rng = np.random.default_rng(3)
+    matrix, target = rng.normal(size=(50, 2)), rng.normal(size=50)
+    calls = []
+
+    def linear(x):
+        calls.append(x.copy())
+        return matrix @ x - target
+
+    jacobian = BroydenJacobian(linear, 0.02)
+    result = scipy.optimize.least_squares(jacobian.residuals, np.zeros(2), jac=jacobian, method='trf',
+                                          xtol=1e-12, ftol=1e-12)
+    assert np.allclose(jacobian.matrix, matrix, atol=1e-9)
+    assert np.allclose(result.x, np.linalg.solve(matrix.T @ matrix, matrix.T @ target), atol=1e-8)
+    assert len(calls) == result.nfev + 2  # the differences once, every update free
+
+    def curved(x):
+        return np.array([np.exp(x[0]) - x[1], x[0] * x[1], np.sin(x[1])])
+
+    secant = BroydenJacobian(curved, 0.02)
+    x0, x1 = np.array([0.1, 0.2]), np.array([0.3, -0.1])
+    secant.residuals(x0)
+    secant(x0)
+    secant.residuals(x1)
+    updated = secant(x1)
+    assert np.allclose(updated @ (x1 - x0), curved(x1) - curved(x0), atol=1e-12)
