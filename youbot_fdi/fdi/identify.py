@@ -106,8 +106,8 @@ MIN_INTEGRAL_SHARE = 0.05  # a P-only prior starts the gain fit at ki = this x k
 SIGN_REFITS = 3  # fits of a magnitude-only effort, each signed by the previous fit
 #: The PI-gain fit (least squares on log gains, the Jacobian by forward differences, then
 #: Broyden's updates): the difference step on the log gains (a few per cent: the prediction is
-#: piecewise smooth in the gains where the loop saturates), the tolerances on the log gains' step and on the cost's
-#: relative change, and the simulations it may run.
+#: piecewise smooth in the gains where the loop saturates), the tolerances on the log gains'
+#: step and on the cost's relative change, and the simulations it may run.
 GAIN_DIFFERENCE_STEP = 0.02
 GAIN_TOLERANCE = 0.01
 GAIN_COST_TOLERANCE = 1e-4
@@ -721,8 +721,9 @@ def descend_grid(error, grid, start, errors, stride=1):
     Each way walks from ``start`` itself, not from the best the other way found: the error is
     flat in places along a delay grid (a delay moves commands across samples only at some grid
     points), and a first step that wins a tie by a rounding error must not hide a valley one
-    step the other way (randomized plant 088: 20 ms won by 1e-9 over 17.5; 15 and 12.5 ms, the
-    plant's gains, were never tried)."""
+    step the other way (randomized plant 088: 17.5 and 20 ms fit alike to four digits; a walk
+    that took 20 ms turned back at 22.5 and never tried 15 and 12.5 ms, which fit better, with
+    the plant's gains)."""
     if np.isnan(errors[start]):
         errors[start] = error(grid[start])
     for direction in (stride, -stride):
@@ -883,8 +884,8 @@ def fit_firmware_gains(model, arrays, input_delay=0.0, command_timeout=WATCHDOG,
 
     # Least squares on the speeds' residuals, not a simplex on their mean square: each step
     # takes the residuals' first-order change in both gains, and from the gains of a nearby
-    # delay it converges in two or three steps, where Nelder-Mead ran about 30 simulations a
-    # fit (the same gains within a per cent on the randomized plants).
+    # delay it converges in two to five simulations, where Nelder-Mead ran about 30 a fit
+    # (docs/fdi.md, "Identification": the gains it finds and what they cost).
     jacobian = BroydenJacobian(residuals, GAIN_DIFFERENCE_STEP, jacobian)
     result = scipy.optimize.least_squares(jacobian.residuals, start, jac=jacobian, method='trf',
                                           xtol=GAIN_TOLERANCE, ftol=GAIN_COST_TOLERANCE,
