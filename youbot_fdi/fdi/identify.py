@@ -107,7 +107,8 @@ SIGN_REFITS = 3  # fits of a magnitude-only effort, each signed by the previous 
 #: The PI-gain fit (least squares on log gains, the Jacobian by forward differences, then
 #: Broyden's updates): the difference step on the log gains (a few per cent: the prediction is
 #: piecewise smooth in the gains where the loop saturates), the tolerances on the log gains'
-#: step and on the cost's relative change, and the simulations it may run.
+#: step and on the cost's relative change, and the residual evaluations least squares may make
+#: (the forward differences' two simulations besides).
 GAIN_DIFFERENCE_STEP = 0.02
 GAIN_TOLERANCE = 0.01
 GAIN_COST_TOLERANCE = 1e-4
@@ -829,17 +830,17 @@ class BroydenJacobian:
 
     def __init__(self, residuals, step, start=None):
         self._residuals, self._step, self.matrix = residuals, step, start
-        self._seen = {}  # x bytes -> residuals
+        self._last = (None, None)  # (x bytes, residuals) of the last evaluation
         self._at = None  # (x, residuals) where self.matrix was last given
 
     def residuals(self, x):
         value = self._residuals(x)
-        self._seen = {x.tobytes(): value}  # least_squares asks the Jacobian where it last evaluated
+        self._last = (x.tobytes(), value)  # least_squares asks the Jacobian where it last evaluated
         return value
 
     def __call__(self, x):
-        value = self._seen.get(x.tobytes())
-        if value is None:
+        seen, value = self._last
+        if seen != x.tobytes():
             value = self.residuals(x)
         if self.matrix is None:
             columns = []
