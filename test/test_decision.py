@@ -38,7 +38,8 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     base breaks away from rest (no torque evidence, the level starts afresh) and those in which
     the wheels leave the level's operating point (the level starts afresh). Blocks longer than
     the parts an alarm change is judged again in (``REJUDGED_ROWS``)."""
-    settings_ = FdiSettings(release_time=0.05, shared_window=0.5, shift_time_constant=0.3)
+    settings_ = FdiSettings(release_time=0.05, shared_window=0.5, shift_time_constant=0.3,
+                            family_thresholds=(3.0,) * len(FAMILIES))
     rng = np.random.default_rng(seed)
     shape = (len(FAMILIES), 4)
     batched = DecisionMaker(model.wheel_names, settings_, load_residual_data())
@@ -67,7 +68,7 @@ def test_batched_alarms_equal_the_sequential_evidence_latch(model, rows, seed):
     moved = rng.random(rows) < 0.1
     got = batched._alarms(z, excited, stamps, torque, bound, bound, breaking, moved)  # bound as scale
     s = settings_
-    threshold = s.family_thresholds[0]  # the same for every family by default
+    threshold = s.family_thresholds[0]  # the same for every family (set so above)
     level_share = 0.5 * threshold
     scale = threshold / s.shift_threshold
     judged_before = evidence.copy()
@@ -305,7 +306,7 @@ def test_evidence_that_drains_holds_no_new_alarm(model):
     samples only the second is over the threshold, no longer shared. Evidence that drains tells of the
     shared excess, not of a fault now: no alarm. The second wheel's own excess after that (score
     2.5, evidence growing by 1.5 a sample from where it drained to) is one, on that wheel."""
-    s = FdiSettings()
+    s = FdiSettings(family_thresholds=(3.0,) * len(FAMILIES))  # the numbers below are for 3
     decision = DecisionMaker(model.wheel_names, replace(s, breakaway_time=0.0), load_residual_data())
     n = len(model.wheel_names)
 
@@ -334,9 +335,8 @@ def test_beside_another_wheels_alarm_only_a_clear_excess_is_a_second_fault(model
     ``second_fault_score``) is a second fault, found at once (the evidence it gathered is over
     the threshold and grows). Row by row and in one batch alike; without fl's alarm the same 2.5
     alarms at its second sample."""
-    s = replace(FdiSettings(), breakaway_time=0.0)
+    s = replace(FdiSettings(), breakaway_time=0.0, family_thresholds=(3.0,) * len(FAMILIES))
     assert s.second_fault_score == 3.0 and s.evidence_cap == 3.0
-    assert s.family_thresholds[FAMILIES.index('torque')] == s.family_thresholds[FAMILIES.index('command')] == 3.0
     plan = [(3.0, 0.0)] * 3 + [(3.0, 2.5)] * 10 + [(3.0, 3.5)] * 2
 
     def frames(plan):

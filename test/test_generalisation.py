@@ -189,8 +189,12 @@ def test_a_small_persistent_excess_adds_up_to_an_alarm(model):
 
 
 def test_a_single_spike_is_not_an_alarm_and_a_large_fault_is_found_at_once(model):
+    settings = FdiSettings()
     assert _first_alarm(model, [0.3] * 5 + [100.0] + [0.3] * 50) is None
-    assert _first_alarm(model, [0.3] * 5 + [100.0] * 5) == 6  # its second sample
+    # capped at evidence_cap, a score adds cap - drift a sample: over the threshold (5) at its third
+    samples = math.ceil(settings.family_thresholds[0] / (settings.evidence_cap - settings.evidence_drift))
+    assert samples == 3
+    assert _first_alarm(model, [0.3] * 5 + [100.0] * 8) == 5 + samples - 1
 
 
 def _events(model, scores, interval=0.01):

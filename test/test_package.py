@@ -126,7 +126,7 @@ def test_every_node_parameter_file_loads_into_its_settings():
     assert load_settings(DriverSettings, 'driver_shim').cycle_rate == 100.0
     assert load_settings(VirtualBaseSettings, 'virtual_youbot').module_ids == (17, 18, 19, 20)
     for node in ('observer', 'decision'):  # config/fdi.yaml applies to every node (/**)
-        assert load_settings(FdiSettings, node, REPO / 'config' / 'fdi.yaml').family_thresholds == (3.0, 3.0, 3.0, 3.0)
+        assert load_settings(FdiSettings, node, REPO / 'config' / 'fdi.yaml').family_thresholds == (5.0, 5.0, 5.0, 3.0)
     bridge = node_parameters(yaml.safe_load((REPO / 'config' / 'kinematics_bridge.yaml').read_text()),
                              'kinematics_bridge')
     assert set(bridge) == {'profile', 'max_wheel_speed', 'odom_frame', 'base_frame'}

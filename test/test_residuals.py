@@ -169,8 +169,31 @@ def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):
     step = 0.002  # 500 Hz
     needed = FROZEN_MIN_TICKS * evaluator.position_quantum / step + SPEED_NOISE_SIGMAS * sigma
     speeds = np.array([[0.5 * needed, 0.99 * needed, 1.01 * needed, 3 * needed]])
-    moving = evaluator._moving(speeds, np.zeros((1, 4)), np.array([[False]]), step)
+    moving = evaluator._moving(speeds, np.zeros((1, 4)), np.array([[False]]), step, np.zeros((1, 4)))
     assert moving.tolist() == [[False, False, True, True]]
+
+
+def test_a_lagging_speed_reading_after_a_stop_is_not_a_turning_wheel(model):
+    """A reading that lags the wheel by tau (first order) decays as w exp(-t / tau) after the
+    wheel stops: it changes by w dt / tau a sample, so the encoder bound's change term, learned
+    as tau / dt (``encoder_change_fraction``), allows w dt of position the reading claims and
+    the encoder never shows. The frozen-position test takes the speed less that bound: the
+    decaying reading is never a turning wheel (its position repeats at every speed), while a
+    steady reading is one from sigma + FROZEN_MIN_TICKS ticks a sample."""
+    tau, dt, sigma = 0.04, 0.008, 0.0005  # [s], [s], [rad]
+    settings = replace(FdiSettings(), speed_sigma=0.0, encoder_sigma=sigma, encoder_speed_fraction=0.0,
+                       encoder_change_fraction=tau / dt, timing_jitter=0.0)
+    evaluator = ResidualEvaluator(model, settings)
+    speed = np.array([[0.2, 1.0, 4.0, 10.0]])  # [rad/s], each far above two ticks a sample
+    quantum = evaluator.position_quantum
+    assert np.all(speed * dt > FROZEN_MIN_TICKS * quantum + sigma)
+    position = np.zeros((1, 4))
+    for change, expected in ((-speed * dt / tau, [False] * 4), (np.zeros((1, 4)), [True] * 4)):
+        _, features = evaluator._encoder_terms(position, position, speed, change, dt)
+        bound = evaluator.bound('encoder', features)
+        np.testing.assert_allclose(bound, sigma + np.abs(change) * tau)  # the closed form
+        moving = evaluator._moving(speed, np.zeros((1, 4)), np.array([[False]]), dt, bound)
+        assert moving.tolist() == [expected]
 
 
 def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(model):

@@ -875,15 +875,23 @@ class ResidualEvaluator:
         features = columns(1.0, np.abs(mean_speed) * step, np.abs(change) * step, np.abs(mean_speed))
         return residual, features
 
-    def _moving(self, mean_speed, target, velocity_mode, step):
+    def _moving(self, mean_speed, target, velocity_mode, step, encoder_bound):
         """Wheels that should have turned at least ``FROZEN_MIN_TICKS`` within the interval, by the
-        measured speed less its noise and (velocity mode) the commanded speed: only then is a
-        repeated position reading evidence (a lagging speed reading keeps turning for a while
-        after the wheel stops; a noisy one is not zero at rest; an interval too short for a tick
-        proves nothing)."""
+        measured speed less its noise and (velocity mode) the commanded speed, less the encoder
+        bound ``encoder_bound`` (N, n) [rad]: only then is a repeated position reading evidence
+        (a lagging speed reading keeps turning for a while after the wheel stops; a noisy one is
+        not zero at rest; an interval too short for a tick proves nothing).
+
+        Why the encoder bound: it is how far the position's change may fall short of what the
+        speed reading says on nominal data, at this operating point (``identify`` learns it; a
+        reading that lags the wheel by tau reads ``tau |dw/dt|`` more than the wheel turns
+        while it slows, its ``encoder_change_fraction`` term). A position that stays within that
+        of the reading has not shown a freeze: a current-mode plant of the randomized suite,
+        whose speed reading lags 40 ms, had its wheel read as turning 0.4 rad/s after it had
+        stopped, an ``encoder_freeze`` without a fault."""
         measured = np.maximum(0.0, np.abs(mean_speed) - self._speed_uncertainty)
         speed = np.where(velocity_mode, np.minimum(measured, np.abs(target)), measured)
-        return speed * step >= FROZEN_MIN_TICKS * self.position_quantum
+        return speed * step - encoder_bound >= FROZEN_MIN_TICKS * self.position_quantum
 
     @staticmethod
     def _observer_features(predicted):
@@ -965,8 +973,9 @@ class ResidualEvaluator:
         unchanged = (position == prev_position) & (velocity == prev_velocity)
         frozen = run_lengths(unchanged, self._frozen, restart)
         effort_frozen = run_lengths(unchanged & (torque == prev_torque), self._effort_frozen, restart)
+        encoder_u = self.bound('encoder', encoder_f)
         stopped = (position == prev_position) & self._moving(mean_speed, p.commanded,
-                                                             p.velocity_mode[:, None], step)
+                                                             p.velocity_mode[:, None], step, encoder_u)
         position_frozen = run_lengths(stopped, self._position_frozen, restart)
 
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
@@ -998,7 +1007,7 @@ class ResidualEvaluator:
             stamp=stamp,
             values=dict(zip(FAMILIES, (torque_r, velocity - p.from_currents, command_r, encoder_r))),
             bounds=dict(zip(FAMILIES, (torque_bound, self.bound('observer', observer_f),
-                                       command_u, self.bound('encoder', encoder_f)))),
+                                       command_u, encoder_u))),
             velocity=velocity, torque=torque, velocity_mode=p.velocity_mode, command=p.commanded,
             frozen=frozen, effort_frozen=effort_frozen, position_frozen=position_frozen,
             silent=np.zeros((rows, n)), load_factor=p.load_factor, command_speed=p.from_commands,
