@@ -367,7 +367,8 @@ def test_the_torque_shift_allows_the_friction_of_a_speed_the_reading_cannot_reso
     """Closed form, F_c a youBot's Coulomb level (0.03 N·m), v_s its step width 0.05 rad/s, the reading
     good to 3 x speed_sigma = 0.03 rad/s: a wheel read within 0.03 of standing may stand, and its
     friction may change by 2 F_c; at 0.06 by F_c (tanh(0.09 / 0.05) - tanh(0.03 / 0.05)); at
-    2 rad/s practically not. The shift's scale is the learned bound plus that, times the load
+    2 rad/s practically not. An exact reading still allows the tanh's own error against the
+    step it smooths, F_c (1 - tanh(|w| / v_s)). The shift's scale is the learned bound plus that, times the load
     factor; a residual's step of 1.5 F_c on a wheel that creeps is then inside the shift test's
     drift (no alarm), the same step at a resolved speed alarms."""
     from youbot_fdi.model.profile import PlatformModel
@@ -382,7 +383,10 @@ def test_the_torque_shift_allows_the_friction_of_a_speed_the_reading_cannot_reso
     expected = coulomb * np.array([2.0, 2.0, math.tanh(0.09 / 0.05) - math.tanh(0.03 / 0.05),
                                    math.tanh(2.03 / 0.05) - math.tanh(1.97 / 0.05)])
     np.testing.assert_allclose(dynamics.coulomb_span(speeds, 0.03), expected[None], rtol=1e-12)
-    assert dynamics.coulomb_span(np.full(4, 0.06), 0.0).tolist() == [0.0] * 4  # an exact reading
+    # an exact reading: the tanh's own error against the step it smooths, F_c (1 - tanh(w / v_s))
+    exact = dynamics.coulomb_span(np.array([0.0, 0.01, 0.06, 2.0]), 0.0)
+    np.testing.assert_allclose(exact, 0.03 * np.array([2.0, 1.0 - math.tanh(0.2), 1.0 - math.tanh(1.2),
+                                                       1.0 - math.tanh(40.0)]), rtol=1e-12)
     evaluator = ResidualEvaluator(model, settings)
     learned = np.full((1, 4), 0.1)
     np.testing.assert_allclose(evaluator.shift_scale(learned, speeds, np.array([[1.5]])),
