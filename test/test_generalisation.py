@@ -188,6 +188,17 @@ def test_a_small_persistent_excess_adds_up_to_an_alarm(model):
     assert _first_alarm(model, [0.95] * 400) is None  # inside the bound: never
 
 
+def test_a_transient_within_the_floor_is_not_an_alarm(model):
+    """The dynamic families' floor (config/fdi.yaml) is the evidence of a model error at 1.5
+    bounds for 0.1 s, a transient beyond calibration: (1.5 - drift) x 0.1 s / evidence_interval
+    = 5. At 100 Hz, nine such samples raise nothing, a tenth alarms."""
+    settings = FdiSettings()
+    samples = round(settings.family_thresholds[0] / (1.5 - settings.evidence_drift))
+    assert samples * settings.evidence_interval == pytest.approx(0.1)
+    assert _first_alarm(model, [1.5] * (samples - 1) + [0.3] * 50) is None
+    assert _first_alarm(model, [1.5] * samples + [0.3] * 50) == samples - 1
+
+
 def test_a_single_spike_is_not_an_alarm_and_a_large_fault_is_found_at_once(model):
     settings = FdiSettings()
     assert _first_alarm(model, [0.3] * 5 + [100.0] + [0.3] * 50) is None
