@@ -184,12 +184,14 @@ def sample_by_sample(path, model, settings):
 def randomized_recordings(tmp_path_factory, model):
     """Two drives of plants from the randomized suite (not the FDI's model; their own rates,
     jitter, lost samples, sparse commands), each with a fault, at the default profile's
-    parameters: alarms all along, so every decision path is exercised."""
+    parameters: alarms all along, so every decision path is exercised. Each drive lasts past
+    the suite's fault window, so its fault begins (an 8 s drive ended before it could)."""
     from youbot_fdi.bench import plant, randomized
     root = tmp_path_factory.mktemp('randomized')
     rng = np.random.default_rng(3)
     params = randomized.draw_plants(2, rng)
-    drives = [randomized.judged_drive(rng, params.mass[p], 8.0, fault, p, magnitude)[0]
+    duration = randomized.FAULT_WINDOW[1] + 2.0  # [s]
+    drives = [randomized.judged_drive(rng, params.mass[p], duration, fault, p, magnitude)[0]
               for p, (fault, magnitude) in enumerate([('torque_loss', 0.3), ('encoder_freeze', 1.0)])]
     paths = []
     for p, recording in enumerate(plant.simulate(params, drives, seed=3)):
