@@ -611,7 +611,10 @@ def simulate_from_commands(model, arrays, input_delay=0.0, batch=None, command_t
 
 def command_speed_error(model, arrays, input_delay, command_timeout=WATCHDOG):
     """Mean squared difference [(rad/s)²] of the measured speeds and those the command path
-    predicts (:func:`simulate_from_commands`): what the delay and gain searches minimise."""
+    predicts (:func:`simulate_from_commands`): what the delay search on the coarse grid
+    minimises (the gain fit minimises the same per speed, :func:`fit_firmware_gains`, where a
+    missing reading adds nothing and an overflowed prediction counts as off by its wheel's
+    range)."""
     predicted = simulate_from_commands(model, arrays, input_delay, command_timeout=command_timeout)
     return float(np.mean((arrays.velocity - predicted) ** 2))
 
