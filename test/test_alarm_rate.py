@@ -55,3 +55,41 @@ def test_identify_raises_a_threshold_only_where_its_rate_would_miss_the_target()
     assert chosen['family_thresholds'][2] == pytest.approx(noisy.threshold(share))
     assert stated['command'][1] == pytest.approx(share)
     assert sum(rate for _, rate in stated.values()) <= settings.false_alarm_target + 1e-12
+
+
+def test_a_silence_is_judged_by_the_misses_calibration_allows():
+    """No miss in N samples: the chance of one is at most 1 - 0.05^(1/N) (95 %); k misses in a
+    row start at a sample with at most that to the k-th, on each of the wheels."""
+    estimate = alarm_rate.silence_estimate(np.ones((3000, 4), dtype=bool), 0.01)
+    chance = 1.0 - 0.05 ** (1.0 / 3000)
+    assert estimate.miss_chance == pytest.approx(chance, rel=1e-9)
+    assert estimate.longest == 0
+    assert estimate.rate(3) == pytest.approx(4 * 360000.0 * chance ** 3)
+    # 4 x 360000 x p^2 = 1.43 per hour, x p once more = 1.4e-3: three in a row meet 0.01 / 6
+    assert estimate.threshold(0.01 / 6) == 3
+    assert estimate.rate(estimate.threshold(1e-6)) <= 1e-6 < estimate.rate(estimate.threshold(1e-6) - 1)
+
+
+def test_a_silence_as_long_as_one_calibration_saw_is_never_a_fault():
+    """Wheel 1 missed 5 samples in a row, wheel 2 one: the longest run is 5, so a silence needs 6
+    whatever the chance says; the chance is the Clopper-Pearson bound of the wheel missing most."""
+    answered = np.ones((3000, 4), dtype=bool)
+    answered[100:105, 1] = False
+    answered[2000, 2] = False
+    estimate = alarm_rate.silence_estimate(answered, 0.01)
+    assert alarm_rate.longest_run(~answered) == estimate.longest == 5
+    assert estimate.rate(5) == math.inf
+    assert estimate.threshold(1e3) == 6  # a lax target: the run calibration saw decides
+    # 5 misses of 3000: P(X <= 5) = 0.05 at the bound (binomial)
+    p = estimate.miss_chance
+    assert sum(math.comb(3000, k) * p ** k * (1 - p) ** (3000 - k) for k in range(6)) == \
+        pytest.approx(0.05, rel=1e-6)
+
+
+def test_silences_without_data_or_with_bad_shapes():
+    with pytest.raises(ValueError, match='shape'):
+        alarm_rate.silence_estimate(np.ones(10, dtype=bool), 0.01)
+    with pytest.raises(ValueError, match='interval'):
+        alarm_rate.silence_estimate(np.ones((10, 4), dtype=bool), 0.0)
+    every = alarm_rate.silence_estimate(np.zeros((10, 4), dtype=bool), 0.01)  # never an answer
+    assert every.miss_chance == 1.0 and every.threshold(0.01) == math.inf

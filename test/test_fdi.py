@@ -12,6 +12,7 @@ import pytest
 from youbot_fdi.bag import RecordingError, RecordingReader, RecordingWriter
 from youbot_fdi.cli.main import main
 from youbot_fdi.app.config import build_pipeline
+from youbot_fdi.app.recordings import read_arrays
 from youbot_fdi.app.replay import replay_recording
 from youbot_fdi.model import load_model, load_profile
 from youbot_fdi.model.scenario import DriveScript, load_script
@@ -200,7 +201,7 @@ def test_identify_fits_the_rollers_drag_when_asked_and_finds_none_where_there_is
     assert load_profile(params).dynamics.roller_drag == 0.0
 
 
-def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp_path, capsys):
+def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp_path, capsys, model):
     params = tmp_path / 'params.yaml'
     assert main(['identify', str(recordings['nominal'].path), '--output', str(params), '--no-gains',
                  '--plot', str(tmp_path / 'sweep.png')]) == 0
@@ -215,7 +216,7 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
     assert set(profile.fdi) == learned | ranges | {'sample_interval', 'contact_share_floor',
                                                    'speed_sigma', 'calibrated_effort',
                                                    'calibrated_speed_range', 'calibrated_slip',
-                                                   'family_thresholds',
+                                                   'family_thresholds', 'silent_samples',
                                                    'shift_threshold', 'command_timeout'}
     assert profile.fdi['contact_share_floor'] == 0.0  # per-wheel friction: no contact law to bound
     assert profile.fdi['command_timeout'] == 0.25  # commands with every sample: the shim's watchdog
@@ -228,12 +229,23 @@ def test_identify_recovers_friction_and_writes_usable_parameters(recordings, tmp
     assert replay(recordings['nominal'].path, params) == []
     alarms = [e for e in replay(recordings['stuck'].path, params) if e.level == 'ERROR']
     assert alarms[0].wheel == 'wheel_joint_br' and alarms[0].fault == 'stuck'
+    # No module missed an answer in the N samples: a miss is at most p = 1 - 0.05^(1/N) likely
+    # (95 %), and k misses in a row of one of 4 wheels at most 4 x (3600 s / dt) x p^k per hour;
+    # the fewest k that meet the target's share names the wheel's comm_loss.
+    rows, interval = len(read_arrays(recordings['nominal'].path, model).time), profile.fdi['sample_interval']
+    chance = 1.0 - 0.05 ** (1.0 / rows)
+    share = load_settings(FdiSettings, 'fdi').false_alarm_target / 6  # six tests
+    silent = math.ceil(math.log(share / (4 * 3600.0 / interval)) / math.log(chance))
+    assert profile.fdi['silent_samples'] == silent
+    alarms = [e for e in replay(recordings['comm_loss'].path, params) if e.level == 'ERROR']
+    assert [(e.wheel, e.fault) for e in alarms[:1]] == [('wheel_joint_fr', 'comm_loss')]
+    silent_from = DEFAULT_START_STAMP + 9.0  # the first sample without the wheel's reading
+    assert alarms[0].stamp - silent_from == pytest.approx((silent - 1) * interval, abs=0.3 * interval)
 
 
 def test_identify_measures_the_input_delay(tmp_path, model):
     """A base that reports 40 ms late looks like commands acting 40 ms later; identify finds it
     within the grid step plus a sample, and the FDI, predicting with it, stays quiet."""
-    from youbot_fdi.app.recordings import read_arrays
     from youbot_fdi.fdi.identify import delay_grid, fit_input_delay
     found = {}
     for late in (0.0, 0.04):
@@ -393,3 +405,22 @@ def test_a_wheel_that_reads_frozen_while_its_current_changes_is_an_encoder_freez
                               position_frozen=np.zeros(4, dtype=int), silent=np.zeros(4))
         events += decision.update(frame)
     assert [(e.level, e.wheel, e.fault) for e in events] == [('ERROR', 'wheel_joint_fl', expected)]
+
+
+def test_identify_reads_the_answers_a_module_missed_and_fits_only_complete_samples(tmp_path, model):
+    """A sample without one wheel's reading (the driver's NaN) is not fitted, but counted: the
+    silence test's chance of a miss and its longest run come from it."""
+    path = tmp_path / 'missed'
+    missed = {40, 41, 42, 90}  # samples without wheel fr's reading
+    with RecordingWriter(path, model.wheel_names) as writer:
+        for k in range(300):
+            speeds = [1.0, math.nan if k in missed else 1.0, 1.0, 1.0]
+            positions = [0.01 * k if math.isfinite(v) else math.nan for v in speeds]
+            writer.joint_state(100 + 0.01 * k, positions, speeds, [0.1] * 4)
+    arrays = read_arrays(path, model)
+    assert len(arrays.time) == 300 - len(missed)
+    assert arrays.answered.shape == (300, 4)
+    assert np.count_nonzero(~arrays.answered) == len(missed)
+    assert np.flatnonzero(~arrays.answered[:, 1]).tolist() == sorted(missed)
+    from youbot_fdi.fdi.identify import silence_estimate
+    assert silence_estimate(arrays, 0.01).longest == 3

@@ -15,7 +15,8 @@ def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMA
     applied)."""
     signs = model.kinematics.drive_signs
     blocks, commands = [], []
-    with RecordingReader(path, model.wheel_names, joint_topic, command_topic) as reader:
+    with RecordingReader(path, model.wheel_names, joint_topic, command_topic,
+                         keep_partial=True) as reader:
         for chunk in reader.chunks():  # whole blocks: a Python object per sample costs more
             blocks.append(chunk.joints)
             commands.extend(chunk.commands.sample(k) for k in range(len(chunk.commands)))
@@ -27,7 +28,11 @@ def read_arrays(path, model, joint_topic=JOINT_STATES, command_topic=WHEEL_COMMA
     joints = JointBatch(stamp[order], *(signs * np.concatenate([getattr(b, f) for b in blocks])[order]
                                         for f in ('position', 'velocity', 'effort')))
     joints = joints.select(RepeatedMessages().fresh(joints))  # re-sent messages carry nothing
-    return RecordingArrays(joints.stamp, joints.position, joints.velocity, joints.effort, commands, damage)
+    answered = joints.answered()  # samples some wheels' modules missed count their misses ...
+    complete = joints.select(joints.complete())  # ... and are not fitted
+    require_samples(len(complete), str(path))
+    return RecordingArrays(complete.stamp, complete.position, complete.velocity, complete.effort,
+                           commands, damage, answered if not answered.all() else None)
 
 
 def identify_recording(path, prior_model, settings, fit_gains=True, learn=True):

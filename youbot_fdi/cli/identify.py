@@ -156,8 +156,13 @@ def run(args):
               + ', '.join(f'{test} {_per_hour(r["per_hour"])} at threshold {r["threshold"]:.3g}'
                           for test, r in rates.items())
               + f'; all tests: {_per_hour(total)}')
-    print(f'  sample interval {1000 * result.fdi["sample_interval"]:.1f} ms (comm_loss after '
-          f'{1000 * max(settings.comm_timeout, settings.comm_timeout_intervals * result.fdi["sample_interval"]):.0f} ms without data)')
+    learned = replace(settings, sample_interval=result.fdi['sample_interval'],
+                      silent_samples=result.fdi['silent_samples'])
+    wheel = (f'a wheel\'s after {learned.silent_samples} samples without its reading, '
+             f'{1000 * learned.wheel_timeout:.0f} ms after the first' if learned.silent_samples
+             else 'a wheel\'s after as long without its reading')
+    print(f'  sample interval {1000 * learned.sample_interval:.1f} ms (comm_loss after '
+          f'{1000 * learned.data_timeout:.0f} ms without data; {wheel})')
     if args.plot:
         from youbot_fdi.app.report import plot_friction_sweep
         plot_friction_sweep(result.sweep, Path(args.plot))

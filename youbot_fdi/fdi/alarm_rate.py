@@ -11,7 +11,13 @@ alarm rate is at most ``blocks per hour x exp(-theta h)``. A union bound, so the
 an upper bound in the conditions the scores came from: it says nothing of floors or speeds
 calibration did not see (the bounds' extrapolation does, ``fdi/residuals.py``).
 
-Plain numpy; ``identify`` feeds it held-back scores and prints the rate at each threshold.
+A wheel's silence (its module not answering while the others do) is counted in samples, not
+accumulated: :class:`SilenceEstimate` states the rate of runs of k missed answers from the share of
+answers the calibration recording lacked (an upper confidence bound), misses taken as independent
+between samples; no run shorter than the longest calibration saw is ever a fault.
+
+Plain numpy (and scipy.special); ``identify`` feeds it held-back scores and prints the rate at
+each threshold.
 """
 from __future__ import annotations
 
@@ -19,11 +25,14 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
+import scipy.special
 
 #: A score's autocorrelation below this ends the block (1/e: the correlation time).
 BLOCK_CORRELATION = math.exp(-1.0)
 MAX_BLOCK = 200  # [samples] the longest block considered
 SECONDS_PER_HOUR = 3600.0
+#: The one-sided confidence of the upper bound on the chance of a missed answer (Clopper-Pearson).
+MISS_CONFIDENCE = 0.95
 
 
 @dataclass(frozen=True)
@@ -99,3 +108,62 @@ def estimate(increments: np.ndarray, scores: np.ndarray, interval: float) -> Rat
     sums = np.nansum(increments[:rows].reshape(-1, block, increments.shape[1]), axis=1).ravel()
     return RateEstimate(lundberg_exponent(sums), SECONDS_PER_HOUR / (block * interval),
                         increments.shape[1])
+
+
+@dataclass(frozen=True)
+class SilenceEstimate:
+    """Runs of missed answers of one wheel's module: ``miss_chance`` [-] per sample (an upper
+    bound at :data:`MISS_CONFIDENCE` from calibration), ``longest`` [samples] the longest run
+    calibration saw, ``samples_per_hour``, ``streams`` (wheels). A run of k starts at a sample
+    with chance ``miss_chance ** k`` if misses are independent; one the length of a run
+    calibration saw is never taken for a fault, independent or not."""
+
+    miss_chance: float
+    longest: int
+    samples_per_hour: float
+    streams: int
+
+    def rate(self, threshold: float) -> float:
+        """Silences per hour reaching ``threshold`` samples in a row (all wheels), an upper
+        bound; inf at a threshold calibration saw reached."""
+        if threshold <= self.longest:
+            return math.inf
+        return self.streams * self.samples_per_hour * self.miss_chance ** threshold
+
+    def threshold(self, rate: float) -> float:
+        """The fewest samples in a row whose :meth:`rate` is at most ``rate`` [per hour]."""
+        if self.miss_chance <= 0.0:
+            return float(self.longest + 1)
+        if self.miss_chance >= 1.0:
+            return math.inf
+        needed = math.log(rate / (self.streams * self.samples_per_hour)) / math.log(self.miss_chance)
+        return float(max(self.longest + 1, math.ceil(needed - 1e-9)))
+
+
+def longest_run(missed: np.ndarray) -> int:
+    """The longest run of True down the rows of ``missed`` (N, streams), over every stream."""
+    missed = np.asarray(missed, dtype=bool)
+    if missed.ndim != 2:
+        raise ValueError(f'missed must be (N, streams), got shape {missed.shape}')
+    padded = np.vstack([np.zeros((1, missed.shape[1]), bool), missed, np.zeros((1, missed.shape[1]), bool)])
+    edges = np.diff(padded.astype(np.int8), axis=0)
+    starts, ends = np.nonzero(edges.T == 1), np.nonzero(edges.T == -1)
+    return int(np.max(ends[1] - starts[1])) if len(starts[1]) else 0
+
+
+def silence_estimate(answered: np.ndarray, interval: float) -> SilenceEstimate:
+    """The :class:`SilenceEstimate` of a recording whose rows (N, wheels) say which wheels
+    answered, sampled every ``interval`` [s]: the wheel that missed most sets the chance."""
+    answered = np.asarray(answered, dtype=bool)
+    if answered.ndim != 2 or not len(answered):
+        raise ValueError(f'answered must be (N >= 1, wheels), got shape {answered.shape}')
+    if not interval > 0.0:
+        raise ValueError(f'interval must be positive, got {interval} s')
+    rows = len(answered)
+    missed = int(np.max(np.count_nonzero(~answered, axis=0)))
+    # Clopper-Pearson: the chance under which ``missed`` or fewer misses in ``rows`` samples had
+    # probability 1 - MISS_CONFIDENCE
+    chance = (1.0 if missed >= rows
+              else float(scipy.special.betaincinv(missed + 1, rows - missed, MISS_CONFIDENCE)))
+    return SilenceEstimate(chance, longest_run(~answered), SECONDS_PER_HOUR / interval,
+                           answered.shape[1])

@@ -623,7 +623,7 @@ class DecisionMaker:
     def _can_diagnose(self, alarm, position_frozen, silent):
         """Rows of ``alarm`` (N, families, n) that give a diagnosis when every component is OK:
         a torque or encoder alarm, a position frozen while moving (``position_frozen`` (N, n)
-        counts), a wheel silent for ``data_timeout`` (``silent`` (N, n) [s]), or fewer than half
+        counts), a wheel silent for ``wheel_timeout`` (``silent`` (N, n) [s]), or fewer than half
         the wheels off their command path."""
         frozen = (position_frozen >= self.settings.frozen_samples).any(axis=1)
         if not alarm.any():  # no alarm (nearly every row): a frozen position or a silent wheel
@@ -634,9 +634,10 @@ class DecisionMaker:
                 | ((commands > 0) & (commands * 2 < self.n)))
 
     def _silent(self, silent):
-        """Wheels (..., n) without a reading for ``data_timeout``, from their silent times [s]: no
-        fresh data from their module (the driver's NaN), as the base's comm_loss is for all."""
-        return silent >= self.settings.data_timeout
+        """Wheels (..., n) without a reading for ``wheel_timeout``, from their silent times [s]:
+        no fresh data from their module (the driver's NaN) for more samples in a row than the
+        stated rate allows (``silent_samples``), as the base's comm_loss is for all."""
+        return silent >= self.settings.wheel_timeout
 
     def _family(self, name):
         return self.alarm[FAMILIES.index(name)]
@@ -711,7 +712,7 @@ class DecisionMaker:
         still_frozen = {w for w in self._active(sensor_faults)
                         if frame.frozen[w] >= self.settings.frozen_samples}
         stopped = set(np.flatnonzero(frame.position_frozen >= self.settings.frozen_samples).tolist())
-        # A wheel without any reading for data_timeout (its module silent: the driver's NaN)
+        # A wheel without any reading for wheel_timeout (its module silent: the driver's NaN)
         # lost its communication, whatever else is known of it.
         for w in np.flatnonzero(self._silent(frame.silent)):
             diagnoses[int(w)] = (FaultKind.COMM_LOSS, (f'silent_{self.suffixes[w]}',))

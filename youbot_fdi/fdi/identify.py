@@ -138,6 +138,9 @@ class RecordingArrays:
     torque: np.ndarray  # (k, n)
     commands: list  # CommandSample list (driver convention, as recorded)
     damage: object = None  # youbot_fdi.bag.salvage.Damage of a damaged recording (read in part)
+    # (K, n) which wheels answered in every sample read, those some wheels missed too (their
+    # rows are not among the k above); None: every wheel answered every sample
+    answered: np.ndarray = None
 
     @functools.cached_property
     def command_batch(self) -> CommandBatch:
@@ -990,9 +993,9 @@ def speed_noise(arrays):
     return float(1.4826 * mad / math.sqrt(6.0))
 
 
-#: The tests whose false-alarm rate identify states and meets: each evidence family, and the
-#: torque residual's shift from its level; the target is shared among them equally.
-RATE_TESTS = (*FAMILIES, 'torque shift')
+#: The tests whose false-alarm rate identify states and meets: each evidence family, the torque
+#: residual's shift from its level, and a wheel's silence; the target is shared among them equally.
+RATE_TESTS = (*FAMILIES, 'torque shift', 'silence')
 
 
 def held_out_scores(model, batch, settings):
@@ -1056,6 +1059,15 @@ def false_alarm_rates(model, batch, settings, residual_data):
     return estimates
 
 
+def silence_estimate(arrays, interval):
+    """The :class:`~youbot_fdi.fdi.alarm_rate.SilenceEstimate` of a recording's missed answers
+    (``arrays.answered``; none recorded: every wheel answered every sample), sampled every
+    ``interval`` [s]."""
+    answered = (arrays.answered if arrays.answered is not None
+                else np.ones(arrays.velocity.shape, dtype=bool))
+    return alarm_rate.silence_estimate(answered, interval)
+
+
 def rate_thresholds(estimates, settings):
     """The thresholds that meet ``false_alarm_target`` (shared equally among the tests), never
     below the configured ones: ({setting: value}, {test: (threshold, alarms per hour)})."""
@@ -1064,9 +1076,12 @@ def rate_thresholds(estimates, settings):
     for k, family in enumerate(FAMILIES):
         thresholds.append(max(settings.family_thresholds[k], estimates[family].threshold(share)))
     shift = max(settings.shift_threshold, estimates['torque shift'].threshold(share))
-    chosen = dict(zip(FAMILIES, thresholds), **{'torque shift': shift})
+    silence = estimates['silence'].threshold(share)
+    chosen = dict(zip(FAMILIES, thresholds), **{'torque shift': shift, 'silence': silence})
     stated = {test: (chosen[test], estimates[test].rate(chosen[test])) for test in RATE_TESTS}
-    return {'family_thresholds': [float(t) for t in thresholds], 'shift_threshold': float(shift)}, stated
+    return {'family_thresholds': [float(t) for t in thresholds], 'shift_threshold': float(shift),
+            # inf (every sample missed): no count, the wheel's comm_loss after data_timeout
+            'silent_samples': int(silence) if math.isfinite(silence) else 0}, stated
 
 
 def contact_share_floor(model, arrays, settings):
@@ -1182,8 +1197,9 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     nrmse_commands = (nrmse(arrays.velocity, simulate_from_commands(model, arrays, delay, physics))
                       if firmware is not None else None)
     fdi, coverage = fit_bounds(physics, settings)
-    thresholds, stated = rate_thresholds(false_alarm_rates(model, physics, settings, residual_data),
-                                        settings)
+    estimates = false_alarm_rates(model, physics, settings, residual_data)
+    estimates['silence'] = silence_estimate(arrays, interval)
+    thresholds, stated = rate_thresholds(estimates, settings)
     fdi.update(thresholds)
     info['false_alarm_rate'] = {test: {'threshold': round(float(t), 4), 'per_hour': float(f'{r:.3g}')}
                                 for test, (t, r) in stated.items()}

@@ -127,6 +127,9 @@ class FdiSettings:
     comm_timeout: float = 0.2  # a gap in /joint_states longer than this is comm_loss [s] ...
     comm_timeout_intervals: float = 15.0  # ... and longer than this many nominal sample intervals
     sample_interval: float = 0.0  # the nominal sample interval (identify measures it; 0: unknown) [s]
+    # one wheel without a reading this many samples in a row while the others answer is its
+    # comm_loss (identify sets it from the stated rate, fdi/alarm_rate.py; 0: after data_timeout)
+    silent_samples: int = 0
     # identify: bounds = bound_margin * the bound_quantile of |r| on the nominal recording
     bound_quantile: float = 0.99
     bound_margin: float = 1.25
@@ -158,6 +161,15 @@ class FdiSettings:
         """The gap in /joint_states [s] that counts as comm_loss: ``comm_timeout``, or longer for a
         base that samples slowly (``comm_timeout_intervals`` nominal intervals)."""
         return max(self.comm_timeout, self.comm_timeout_intervals * self.sample_interval)
+
+    @property
+    def wheel_timeout(self):
+        """How long [s] one wheel may go without a reading while the others answer before it is
+        that wheel's comm_loss: ``silent_samples`` nominal intervals after its first missing
+        sample (the silence counts from there), never longer than :attr:`data_timeout`."""
+        if self.silent_samples < 1 or self.sample_interval <= 0.0:
+            return self.data_timeout
+        return min(self.data_timeout, (self.silent_samples - 1) * self.sample_interval)
 
     def validate(self, source='<settings>'):
         """Raise ConfigError for non-positive scales and counts."""
