@@ -421,3 +421,31 @@ def test_the_torque_shift_allows_the_friction_of_a_speed_the_reading_cannot_reso
         total += 0.9 * keep ** samples - settings.shift_drift
         samples += 1
     assert first_shift_alarm(2.0) == pytest.approx(400 + samples - 1, abs=1)  # as above: +-1 row
+
+
+def test_the_torque_shift_scale_keeps_what_a_manoeuvre_left_not_the_steady_allowances(model):
+    """The torque bound is the learned part + the allowances + what a manoeuvre beyond
+    calibration left (w X exp(-t / tau), as above); the shift's scale is the learned part + that
+    remembered part (+ the Coulomb span): the allowances for steady biases cancel in a departure
+    from the level, a manoeuvre's model error does not."""
+    learned = dict(zip(BOUND_TERMS['torque'], (0.05, 0.0, 0.1, 0.2)))
+    settings = replace(FdiSettings(), torque_feature_range=(math.inf, 0.5, 2.0, 1.0),
+                       calibrated_slip=0.05, speed_sigma=0.01, **learned)
+    evaluator = ResidualEvaluator(model, settings)
+    tau = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
+    weight = max(learned['torque_inertia_fraction'], bound_weights(PRIOR_SETTINGS, 'torque')[1])
+    rows, dt, excess = 8, 0.01, 3.0  # [N·m] of inertial torque beyond the range, on wheel 1
+    stamp = 50.0 + dt * np.arange(rows)
+    features = np.tile([1.0, 0.2, 0.5, 0.5], (rows, 4, 1))
+    features[0, 1, 1] = 0.5 + excess
+    motion = np.tile(model.kinematics.inverse(np.array([0.8, -0.5, 2.0])), (rows, 1))
+    allowance, load = np.full((rows, 4), 0.3), np.full((rows, 1), 1.5)
+    bound, scale = evaluator._torque_bounds(features, allowance, motion, load, stamp,
+                                            np.zeros(rows, dtype=bool))
+    within = 0.05 + 0.1 * 0.5 + 0.2 * 0.5  # sigma + the current change's and friction's terms
+    remembered = np.zeros((rows, 4))
+    remembered[0, 1] = weight * excess  # the row's own extrapolation
+    remembered[1:, 1] = weight * excess * np.exp(-(stamp[1:] - stamp[0]) / tau)
+    np.testing.assert_allclose(bound, within + 0.3 + remembered, rtol=1e-9)
+    coulomb = 1.5 * model.dynamics.coulomb_span(motion, evaluator._speed_uncertainty)
+    np.testing.assert_allclose(scale, within + remembered + coulomb, rtol=1e-9)
