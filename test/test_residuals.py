@@ -255,6 +255,18 @@ def test_a_wheel_is_silent_from_its_first_sample_without_a_reading_not_across_a_
     np.testing.assert_allclose(np.concatenate(rows), expected, atol=1e-12)
 
 
+def extrapolating(model):
+    """(settings, evaluator, tau, w) of a calibration whose torque features' range ends at an
+    inertial torque of 0.5 N·m: tau the loop's slowest time constant [s], w the weight [-] an
+    excess beyond it takes (the larger of the learned, 0, and the default)."""
+    learned = dict(zip(BOUND_TERMS['torque'], (0.05, 0.0, 0.1, 0.2)))
+    settings = replace(FdiSettings(), torque_feature_range=(math.inf, 0.5, 2.0, 1.0),
+                       calibrated_slip=0.05, speed_sigma=0.01, **learned)
+    tau = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
+    weight = max(learned['torque_inertia_fraction'], bound_weights(PRIOR_SETTINGS, 'torque')[1])
+    return settings, ResidualEvaluator(model, settings), tau, weight
+
+
 def test_the_torque_bound_remembers_a_manoeuvre_beyond_calibration_not_a_wheel_alone(model):
     """A row whose inertial torque is X beyond what calibration covered widens the torque bound
     by w X (w: the larger of the learned and the default weight); the rows after it, inside the
@@ -262,12 +274,7 @@ def test_the_torque_bound_remembers_a_manoeuvre_beyond_calibration_not_a_wheel_a
     row by row; nothing from before a restart. A row whose wheel speeds fit no rigid motion (one
     wheel stopping dead, a reading frozen) is not remembered: the residual is there to show it;
     on a base whose speeds always fit one (three wheels) no row is."""
-    learned = dict(zip(BOUND_TERMS['torque'], (0.05, 0.0, 0.1, 0.2)))
-    settings = replace(FdiSettings(), torque_feature_range=(math.inf, 0.5, 2.0, 1.0),
-                       calibrated_slip=0.05, speed_sigma=0.01, **learned)
-    evaluator = ResidualEvaluator(model, settings)
-    tau = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
-    weight = max(learned['torque_inertia_fraction'], bound_weights(PRIOR_SETTINGS, 'torque')[1])
+    settings, evaluator, tau, weight = extrapolating(model)
     rows, dt, excess = 12, 0.01, 3.0  # [N·m] of inertial torque beyond the range, on wheel 2
     stamp = 50.0 + dt * np.arange(rows)
     features = np.tile([1.0, 0.2, 0.5, 0.5], (rows, 4, 1))
@@ -428,12 +435,7 @@ def test_the_torque_shift_scale_keeps_what_a_manoeuvre_left_not_the_steady_allow
     calibration left (w X exp(-t / tau), as above); the shift's scale is the learned part + that
     remembered part (+ the Coulomb span): the allowances for steady biases cancel in a departure
     from the level, a manoeuvre's model error does not."""
-    learned = dict(zip(BOUND_TERMS['torque'], (0.05, 0.0, 0.1, 0.2)))
-    settings = replace(FdiSettings(), torque_feature_range=(math.inf, 0.5, 2.0, 1.0),
-                       calibrated_slip=0.05, speed_sigma=0.01, **learned)
-    evaluator = ResidualEvaluator(model, settings)
-    tau = slowest_time_constant(model.dynamics, model.drive.torque_per_amp, model.firmware)
-    weight = max(learned['torque_inertia_fraction'], bound_weights(PRIOR_SETTINGS, 'torque')[1])
+    settings, evaluator, tau, weight = extrapolating(model)
     rows, dt, excess = 8, 0.01, 3.0  # [N·m] of inertial torque beyond the range, on wheel 1
     stamp = 50.0 + dt * np.arange(rows)
     features = np.tile([1.0, 0.2, 0.5, 0.5], (rows, 4, 1))
