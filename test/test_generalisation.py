@@ -315,9 +315,9 @@ def test_the_load_factor_is_the_part_every_wheel_shares(model):
     generator = ResidualGenerator(model, FdiSettings(torque_sigma=0.01))
     friction = np.array([0.2, 0.2, 0.2, 0.2])
     both = np.concatenate([[1.5, 1.3, 1.4, 1.6] * friction, friction])[None]
-    assert float(generator.observer._load_factor(both, 1.0)[0]) == pytest.approx(1.45)  # the median
+    assert float(generator.observer._load_factor(both, 1.0)[0][0]) == pytest.approx(1.45)  # the median
     one = np.concatenate([[2.0, 1.0, 1.0, 1.0] * friction, friction])[None]
-    assert float(generator.observer._load_factor(one, 1.0)[0]) == pytest.approx(1.0)  # one wheel: a fault
+    assert float(generator.observer._load_factor(one, 1.0)[0][0]) == pytest.approx(1.0)  # one wheel: a fault
 
 
 # ---------------------------------------------------------------------- the real recordings

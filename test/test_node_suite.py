@@ -38,7 +38,8 @@ def test_prediction_vector_round_trip_is_exact():
     rng = np.random.default_rng(3)
     wheels = {f: rng.normal(size=4) for f in ('from_currents', 'from_commands', 'commands_before',
                                               'commanded', 'commanded_before', 'commanded_latest',
-                                              'explained', 'friction', 'unseen_friction')}
+                                              'explained', 'friction', 'unseen_friction',
+                                              'load_spread')}
     prediction = Prediction(stamp=1.5, since=1.49, velocity_mode=False, load_factor=1.2, **wheels)
     labels, values = Prediction.labels(names), prediction.to_vector(signs)
     back = Prediction.from_labelled(1.5, labels, values, names, signs)
@@ -55,6 +56,11 @@ def test_prediction_vector_round_trip_is_exact():
     before = Prediction.from_labelled(1.5, [labels[i] for i in older], values[older], names, signs)
     np.testing.assert_array_equal(before.commanded_latest, prediction.commanded)
     np.testing.assert_array_equal(before.explained, prediction.explained)
+    # an observer from before load_spread: no spread (the configured allowance alone)
+    older = [i for i, label in enumerate(labels) if not label.startswith('load_spread_')]
+    before = Prediction.from_labelled(1.5, [labels[i] for i in older], values[older], names, signs)
+    np.testing.assert_array_equal(before.load_spread, np.zeros(4))
+    np.testing.assert_array_equal(before.friction, prediction.friction)
     assert np.any(values[:4] != prediction.from_currents)  # published in driver convention
 
 

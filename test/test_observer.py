@@ -95,7 +95,7 @@ def test_the_load_factor_follows_a_platform_change_of_any_size(model):
     def factor(ratios, previous=1.0, voting=(True,) * 4):
         votes = np.where(voting, friction, 0.0)
         row = np.concatenate([np.array(ratios) * votes, votes])[None]
-        return float(observer._load_factor(row, previous)[0])
+        return float(observer._load_factor(row, previous)[0][0])
 
     assert factor([3.2, 3.0, 3.4, 3.1]) == pytest.approx(3.15)
     assert factor([5.0, 1.0, 1.0, 1.0]) == pytest.approx(1.0)
@@ -112,7 +112,7 @@ def test_two_voters_move_the_load_factor_as_far_as_both_agree(model):
 
     def factor(ratios, previous):
         return float(observer._load_factor(
-            np.concatenate([np.array(ratios + [0.0, 0.0]) * friction, friction])[None], previous)[0])
+            np.concatenate([np.array(ratios + [0.0, 0.0]) * friction, friction])[None], previous)[0][0])
 
     assert factor([2.1, 1.8], 1.0) == pytest.approx(1.8)  # both: the smaller change
     assert factor([0.6, 0.7], 1.0) == pytest.approx(0.7)
@@ -120,7 +120,41 @@ def test_two_voters_move_the_load_factor_as_far_as_both_agree(model):
     assert factor([5.0, 0.95], 1.0) == pytest.approx(1.0)  # either side of the last: held
     assert factor([0.3, 1.0], 1.7) == pytest.approx(1.0)
     one = np.concatenate([[0.6, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])[None]  # one voter at x3
-    assert float(observer._load_factor(one, 1.7)[0]) == pytest.approx(1.7)  # held
+    assert float(observer._load_factor(one, 1.7)[0][0]) == pytest.approx(1.7)  # held
+
+
+def test_the_load_spread_is_how_far_the_other_wheels_stand_from_the_factor():
+    """Per wheel, the median over the other voting wheels of |ratio - factor|: a wheel's own
+    fault leaves its spread as the others make it; one faulty wheel among three others moves
+    their median little; no other voter, no spread."""
+    from youbot_fdi.fdi.observer import load_spread
+    nan = np.nan
+    ratio = np.array([[5.0, 1.1, 0.9, 1.0],  # wheel 0 faulty, the factor 1.0
+                      [1.65, nan, nan, 0.83],  # two voters (a floor each wheel meets its own way)
+                      [1.2, nan, nan, nan]])  # one voter
+    factor = np.array([1.0, 1.09, 1.2])
+    # |ratio - factor|: (4, 0.1, 0.1, 0); (0.56, -, -, 0.26); (0, -, -, -)
+    expected = np.array([[0.1, 0.1, 0.1, 0.1],  # medians of (0.1, 0.1, 0), (4, 0.1, 0), ...
+                         [0.26, 0.41, 0.41, 0.56],  # a wheel that does not vote is judged too
+                         [0.0, 0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(load_spread(ratio, factor), expected, atol=1e-12)
+    np.testing.assert_allclose(load_spread(ratio[:1], factor[:1]), expected[:1], atol=1e-12)  # a live row
+
+
+def test_the_torque_bound_allows_the_larger_of_the_configured_share_and_the_spread(model):
+    """The torque allowance is max(load_allowance |L - 1|, spread) x |friction| (+ the unseen
+    friction at the load): a floor the other wheels meet each their own way widens it."""
+    from youbot_fdi.fdi.residuals import ResidualEvaluator
+    evaluator = ResidualEvaluator(model, FdiSettings())
+    zero = np.zeros((1, 4))
+    friction = np.array([[0.2, -0.2, 0.1, 0.0]])
+    spread = np.array([[0.0, 0.56, 0.2, 3.0]])
+    load = np.array([[1.6]])
+    _, _, allowance = evaluator._torque_terms(zero, zero, zero, zero, zero, friction, zero, load,
+                                              spread, np.array([[0.01]]))
+    share = np.maximum(FdiSettings().load_allowance * 0.6, spread)  # 0.3 configured
+    np.testing.assert_allclose(allowance, share * np.abs(friction), atol=1e-12)
+    assert allowance[0, 1] == pytest.approx(0.56 * 0.2)
 
 
 def test_friction_beyond_the_calibrated_speeds_is_allowed_between_its_extrapolations(model):

@@ -22,6 +22,9 @@ Inputs are what the robot publishes (CONTRACT.md, driver convention): /joint_sta
     part, with a contact law as if the contact only rolled: what the load condition scales) [N·m].
 ``load_factor``
     the platform-wide friction/load condition (1: as identified), slow and bounded.
+``load_spread``
+    how far the other wheels' own load ratios stand from that shared factor, per wheel (the
+    median over them) [-]: how far one factor describes the wheels beside it.
 
 The residual generator (:class:`~youbot_fdi.fdi.residuals.ResidualEvaluator`) turns a sample and
 its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerator` runs both.
@@ -81,11 +84,12 @@ MAX_PENDING_COMMANDS = 256
 SCAN_WINDOW = 64
 #: Per-wheel fields of a prediction, in labelled-vector order (see Prediction.to_labelled).
 WHEEL_FIELDS = ('from_currents', 'from_commands', 'commands_before', 'commanded',
-                'commanded_before', 'commanded_latest', 'explained', 'friction', 'unseen_friction')
+                'commanded_before', 'commanded_latest', 'explained', 'friction', 'unseen_friction',
+                'load_spread')
 #: Per-wheel fields added to the published prediction since the first release, and the field
 #: each takes from an observer that does not publish it (a robot whose nodes are updated one at a
 #: time): without the latest command sent, the command in force.
-FIELDS_ADDED = {'commanded_latest': 'commanded'}
+FIELDS_ADDED = {'commanded_latest': 'commanded', 'load_spread': None}  # None: zeros
 #: Scalar fields of a prediction, after the per-wheel ones.
 SCALAR_FIELDS = ('since', 'velocity_mode', 'load_factor', 'outside_calibration', 'resynced')
 
@@ -129,6 +133,25 @@ def shared_ratio(ratio: np.ndarray, previous: float, least: float) -> np.ndarray
         low = np.where(paired, np.maximum(np.fmin.reduce(ratio, axis=-1), least), least)
         high = np.where(paired, np.maximum(np.fmax.reduce(ratio, axis=-1), least), np.inf)
     return clip_recursion(np.where(full, median, low), np.where(full, median, high), previous)
+
+
+def load_spread(ratio: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """For each wheel (N, n), the median over the *other* wheels that vote of how far their ratio
+    ``ratio`` (N, n) (NaN: no vote) stands from the shared ``factor`` (N,) [-]; 0 where no other
+    wheel votes.
+
+    Why: the factor is what the wheels share; how far it describes the wheels beside one is how
+    far that wheel may stand off it without a fault of its own (a floor that changes each
+    wheel's contact by its own factor, friction split otherwise than the model splits it). A
+    fault of the wheel judged leaves the others where they were, so its allowance stays; one
+    faulty wheel among the others moves their median little."""
+    n = ratio.shape[-1]
+    if n < 2:
+        return np.zeros_like(ratio)
+    deviation = np.abs(ratio - np.asarray(factor, dtype=float)[..., None])
+    others = np.array([[v for v in range(n) if v != w] for w in range(n)])  # (n, n - 1)
+    spread = nan_median(deviation[..., others])
+    return np.where(np.isnan(spread), 0.0, spread)
 
 
 def voters_moving_the_share(n: int) -> int:
@@ -196,6 +219,7 @@ class Prediction:
     explained: np.ndarray  # [N·m]
     friction: np.ndarray  # [N·m]
     unseen_friction: np.ndarray  # [N·m] friction the contact law may miss out of its calibrated range
+    load_spread: np.ndarray  # [-] the other wheels' load ratios' median distance from the factor
     load_factor: float  # [-]
     #: wheels whose operating point the learned correction's calibration did not cover (bit w for
     #: wheel w, youbot_fdi.fdi.learned.wheel_mask): physics only for them; 0 without a correction
@@ -233,15 +257,20 @@ class Prediction:
         else:
             index = {label: i for i, label in enumerate(labels)}
             suffixes = [wheel_suffix(w) for w in wheel_names]
+            values = np.append(np.asarray(values, dtype=float), 0.0)  # the zero a field may take
             for field, stand_in in FIELDS_ADDED.items():
                 for suffix in suffixes:
-                    if f'{field}_{suffix}' not in index and f'{stand_in}_{suffix}' in index:
+                    if f'{field}_{suffix}' in index:
+                        continue
+                    if stand_in is None:
+                        index[f'{field}_{suffix}'] = len(values) - 1
+                    elif f'{stand_in}_{suffix}' in index:
                         index[f'{field}_{suffix}'] = index[f'{stand_in}_{suffix}']
             missing = [label for label in wanted if label not in index]
             if missing:
                 msg = f'prediction lacks {missing[0]}'
                 raise ValueError(msg)
-            picked = np.asarray(values, dtype=float)[[index[label] for label in wanted]]
+            picked = values[[index[label] for label in wanted]]
         n = len(wheel_names)
         wheels = {field: signs * picked[j * n:(j + 1) * n] for j, field in enumerate(WHEEL_FIELDS)}
         since, mode, load, outside, resynced = picked[len(WHEEL_FIELDS) * n:]
@@ -269,6 +298,7 @@ class PredictionBatch:
     explained: np.ndarray
     friction: np.ndarray
     unseen_friction: np.ndarray
+    load_spread: np.ndarray
     load_factor: np.ndarray
     outside_calibration: np.ndarray  # (N,) as in Prediction
     resynced: np.ndarray  # (N,) wheel bits, as in Prediction
@@ -746,20 +776,21 @@ class ModelObserver:
         return np.where(votes, load_part, 0.0), np.where(votes, friction, 0.0)
 
     def _load_factor(self, smoothed, previous):
-        """The platform-wide load factor from the smoothed (load part; friction) (..., 2n): the
+        """The platform-wide load factor (N,) and each wheel's load spread (N, n)
+        (:func:`load_spread`) from the smoothed (load part; friction) (N, 2n). The factor is the
         median of the voting wheels' ratios, at any size (a floor or payload three times the
         calibration's is shared as much as one ten percent off). A median of at least
         ``MIN_LOAD_VOTES`` wheels is moved by no single wheel (a fault stays that wheel's), and
         it follows what most wheels share where they do not all change alike (a floor that
         triples the rolling wheels' friction and leaves a sliding one's); with two voters, as far
-        as both agree (:func:`shared_ratio`), from ``previous``. Rows (N,) of ``smoothed`` (N,
-        2n)."""
+        as both agree (:func:`shared_ratio`), from ``previous``."""
         n = self.n
         load, friction = smoothed[..., :n], smoothed[..., n:]
         votes = np.abs(friction) >= self.settings.torque_sigma
         ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
         # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
-        return shared_ratio(ratio, previous, 0.0)
+        factor = shared_ratio(ratio, previous, 0.0)
+        return factor, load_spread(ratio, factor)
 
     def _shared_drag(self, velocity, mean_speed, residual, inertial, friction, keep):
         """The torque [N·m] (N, n) of the rollers' drag the floor adds beyond the model's: its
@@ -837,8 +868,8 @@ class ModelObserver:
         if rows == 0:
             empty = np.empty((0, n))
             return PredictionBatch(stamp, np.empty(0), np.empty(0, dtype=bool), *(empty,) * 6,
-                                   velocity_mode, empty, empty, empty, np.empty(0), np.empty(0),
-                                   np.empty(0))
+                                   velocity_mode, empty, empty, empty, empty, np.empty(0),
+                                   np.empty(0), np.empty(0))
         first = self._last is None
         if first:
             self._restart(stamp[0], velocity[0], torque[0], velocity_mode[0], target[0])
@@ -866,7 +897,7 @@ class ModelObserver:
         keep = self._smoothing(dt)
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
             self._load_votes(mean_torque, explained, friction), axis=1), self._load[0])
-        load = self._load_factor(smoothed, self._load[1])
+        load, spread = self._load_factor(smoothed, self._load[1])
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
         if self._measures_drag:
             drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
@@ -915,7 +946,7 @@ class ModelObserver:
             commanded=target, commanded_before=shifted(self._last_target, target),
             commanded_latest=latest,
             velocity_mode=velocity_mode, explained=explained, friction=friction,
-            unseen_friction=unseen, load_factor=load, outside_calibration=outside,
+            unseen_friction=unseen, load_spread=spread, load_factor=load, outside_calibration=outside,
             resynced=wheel_mask(~(own & (velocity_mode & ~restart)[:, None])))
         self._last = (stamp[-1], velocity[-1], torque[-1])
         self._observer, self._command_state = observer[-1], path[-1]

@@ -626,17 +626,20 @@ class ResidualEvaluator:
         return beyond
 
     def _torque_terms(self, torque, prev_torque, velocity, prev_velocity, explained, friction, unseen,
-                      load, step):
+                      load, spread, step):
         """(residual, features, allowance) of the torque family; ``load`` the load factor (scalar
-        or (N, 1)) scales the friction part of the explained torque, and the bound allows
-        ``load_allowance`` of that change (the factor is an estimate: how friction splits into its
-        viscous and Coulomb parts changes with the floor too) and the ``unseen`` friction of a
-        wheel outside the contact law's calibrated range (observer.py), at the load."""
+        or (N, 1)) scales the friction part of the explained torque, and the bound allows the
+        larger of ``load_allowance`` of that change (the factor is an estimate: how friction
+        splits into its viscous and Coulomb parts changes with the floor too) and the ``spread``
+        (N, n) [-] of the other wheels about the factor (observer.py, ``load_spread``: how far one
+        factor describes the wheels beside this one), of the friction; and the ``unseen``
+        friction of a wheel outside the contact law's calibrated range (observer.py), at the
+        load."""
         mean_torque = 0.5 * (torque + prev_torque)
         inertial = (velocity - prev_velocity) @ self.mass_matrix.T / step
         residual = mean_torque - explained - (load - 1.0) * friction
-        allowance = (self.settings.load_allowance * np.abs((load - 1.0) * friction)
-                     + np.abs(load * unseen))
+        share = np.maximum(self.settings.load_allowance * np.abs(load - 1.0), spread)
+        allowance = share * np.abs(friction) + np.abs(load * unseen)
         features = columns(1.0, np.abs(inertial), np.abs(torque - prev_torque), np.abs(load * friction))
         return residual, features, allowance
 
@@ -962,7 +965,7 @@ class ResidualEvaluator:
         load = p.load_factor[:, None]
         torque_r, torque_f, torque_a = self._torque_terms(
             torque, prev_torque, velocity, prev_velocity, p.explained, p.friction, p.unseen_friction,
-            load, step)
+            load, p.load_spread, step)
         observer_f = self._observer_features(p.from_currents)
         # A wheel's command-path prediction settles (settle_time; current mode: startup_time)
         # after it started from a guessed state: a restart, or the measured state taken where its
