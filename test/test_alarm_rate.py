@@ -93,3 +93,17 @@ def test_silences_without_data_or_with_bad_shapes():
         alarm_rate.silence_estimate(np.ones((10, 4), dtype=bool), 0.0)
     every = alarm_rate.silence_estimate(np.zeros((10, 4), dtype=bool), 0.01)  # never an answer
     assert every.miss_chance == 1.0 and every.threshold(0.01) == math.inf
+
+
+def test_a_wheel_times_out_after_its_silent_samples_never_after_the_base():
+    """A wheel's silence counts from its first sample without a reading, so k samples in a row
+    span (k - 1) intervals; never longer than the base's data timeout, which stands in when
+    identify measured nothing (no count, or no interval)."""
+    from dataclasses import replace
+    from youbot_fdi.fdi.settings import FdiSettings
+    base = FdiSettings()
+    assert replace(base, silent_samples=3, sample_interval=0.01).wheel_timeout == pytest.approx(0.02)
+    assert replace(base, silent_samples=3).wheel_timeout == base.data_timeout  # no interval
+    assert replace(base, sample_interval=0.01).wheel_timeout == base.data_timeout  # no count
+    slow = replace(base, silent_samples=40, sample_interval=0.05)  # 1.95 s of samples
+    assert slow.wheel_timeout == slow.data_timeout == pytest.approx(0.75)  # 15 intervals
