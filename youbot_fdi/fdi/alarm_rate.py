@@ -27,6 +27,8 @@ import math
 import numpy as np
 import scipy.special
 
+from youbot_fdi.fdi.recursions import run_lengths
+
 #: A score's autocorrelation below this ends the block (1/e: the correlation time).
 BLOCK_CORRELATION = math.exp(-1.0)
 MAX_BLOCK = 200  # [samples] the longest block considered
@@ -145,10 +147,9 @@ def longest_run(missed: np.ndarray) -> int:
     missed = np.asarray(missed, dtype=bool)
     if missed.ndim != 2:
         raise ValueError(f'missed must be (N, streams), got shape {missed.shape}')
-    padded = np.vstack([np.zeros((1, missed.shape[1]), bool), missed, np.zeros((1, missed.shape[1]), bool)])
-    edges = np.diff(padded.astype(np.int8), axis=0)
-    starts, ends = np.nonzero(edges.T == 1), np.nonzero(edges.T == -1)
-    return int(np.max(ends[1] - starts[1])) if len(starts[1]) else 0
+    if not missed.size:
+        return 0
+    return int(run_lengths(missed, np.zeros(missed.shape[1], dtype=int)).max())
 
 
 def silence_estimate(answered: np.ndarray, interval: float) -> SilenceEstimate:
