@@ -149,9 +149,17 @@ def load_spread(ratio: np.ndarray, factor: np.ndarray) -> np.ndarray:
     if n < 2:
         return np.zeros_like(ratio)
     deviation = np.abs(ratio - np.asarray(factor, dtype=float)[..., None])
-    others = np.array([[v for v in range(n) if v != w] for w in range(n)])  # (n, n - 1)
-    spread = nan_median(deviation[..., others])
+    spread = nan_median(deviation[..., other_wheels(n)])
     return np.where(np.isnan(spread), 0.0, spread)
+
+
+@functools.cache
+def other_wheels(n: int) -> np.ndarray:
+    """(n, n - 1) indices, read-only: row w lists every wheel but w (built once per base size:
+    the live path asks for it every sample)."""
+    others = np.array([[v for v in range(n) if v != w] for w in range(n)])
+    others.setflags(write=False)
+    return others
 
 
 def voters_moving_the_share(n: int) -> int:
