@@ -281,6 +281,74 @@ def test_a_torque_shift_is_evidence_only_at_the_operating_point_of_its_level(mod
         assert first == math.inf
 
 
+def test_the_friction_change_within_an_operating_point_against_its_closed_form(model):
+    """Closed form, 100 Hz: every wheel at 2 rad/s for 2 s, then wheel 0 at 1.6 (the same point:
+    0.4 < a quarter of 2 plus three speed_sigma). The reference is the mean of the speeds before
+    each row since the point started; the speed now is the reading averaged over
+    load_time_constant, s_k = s_(k-1) + g (v_k - s_(k-1)), g = 1 - exp(-dt / 0.2), from the first
+    reading; the change allowed is the friction level (0.5 N·m) times the larger of |s -
+    reference| and |v - reference| less three speed_sigma (a step beyond the reading's noise at
+    once), over the faster of s and the reference (at least stuck_speed). Row by row the same; a row without every reading
+    (no part of the operating point) and a steady speed allow nothing."""
+    s = FdiSettings()
+    rate, rows, level = 100.0, 300, 0.5
+    stamps = 10.0 + np.arange(rows) / rate
+    speeds = np.full((rows, 4), 2.0)
+    speeds[200:, 0] = 1.6
+    speeds[250, 2] = np.nan  # a wheel without a reading: skipped by the operating point too
+    friction = np.full((rows, 4), level)
+    block = DecisionMaker(model.wheel_names, s, load_residual_data())
+    assert not block.operating_point_changes(speeds, np.ones(rows)).any()
+    got = block.friction_change(speeds, friction, stamps)
+    gain = 1.0 - math.exp(-1.0 / rate / s.load_time_constant)
+    expected = np.zeros((rows, 4))
+    average = speeds[0, 0]
+    for k in range(rows):
+        complete = [j for j in range(k) if np.isfinite(speeds[j]).all()]
+        reference = speeds[complete, 0].mean() if complete else speeds[k, 0]
+        average = average + (gain if k else 1.0) * (speeds[k, 0] - average)
+        departure = max(abs(average - reference), abs(speeds[k, 0] - reference) - 3 * s.speed_sigma)
+        if np.isfinite(speeds[k]).all():  # a row without every reading is no part of the point
+            expected[k, 0] = level * departure / max(abs(average), abs(reference), s.stuck_speed)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-15)
+    assert not got[250].any() and np.abs(got[:200]).max() < 1e-12  # steady: rounding only
+    stepped = DecisionMaker(model.wheel_names, s, load_residual_data())
+    one_by_one = []
+    for k in range(rows):
+        stepped.operating_point_changes(speeds[k:k + 1], np.ones(1))
+        one_by_one.append(stepped.friction_change(speeds[k:k + 1], friction[k:k + 1], stamps[k:k + 1])[0])
+    np.testing.assert_allclose(one_by_one, expected, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize('level, alarms', [(0.0, True), (5.0, False)])
+def test_a_torque_shift_with_a_speed_change_allows_the_friction_an_unknown_split_moves(model, level, alarms):
+    """A wheel's torque residual at -0.5 bound for 4 s at 2 rad/s, then at +0.5 while it slows to
+    1.6 rad/s (the same operating point): without a friction level to move (0) that is a shift of
+    one bound, an alarm within (shift_threshold / (1 - shift_drift)) intervals, as at a steady
+    speed; with a friction level ten bounds large (5 N·m; the Robotino's level at x2 is five of its
+    scales) an all-viscous friction would move by 5 x 0.4 / 2 = 1 bound at 1.6 rad/s, allowed at
+    once less the reading's noise (5 x 0.37 / 2): the shift is within what the scale allows, no
+    alarm in the second after."""
+    s = replace(FdiSettings(), breakaway_time=0.0)
+    decision = DecisionMaker(model.wheel_names, s, load_residual_data())
+    rate, n = 100.0, len(model.wheel_names)
+    for k in range(int(4.0 * rate)):
+        frame = replace(torque_frame(model, 10.0 + k / rate, -0.5), friction_level=np.full(n, level))
+        assert not decision.update(frame)
+    first = math.inf
+    for k in range(int(4.0 * rate), int(5.0 * rate)):
+        stamp = 10.0 + k / rate
+        frame = torque_frame(model, stamp, 0.5)
+        frame = replace(frame, velocity=np.array([1.6, 2.0, 2.0, 2.0]), friction_level=np.full(n, level))
+        if any(e.level == 'ERROR' for e in decision.update(frame)):
+            first = min(first, stamp - 14.0)
+    if alarms:
+        intervals = math.ceil(s.shift_threshold / (1.0 - s.shift_drift)) - 1
+        assert first == pytest.approx(intervals / rate, abs=1.0 / rate + 1e-9)
+    else:
+        assert first == math.inf
+
+
 @pytest.mark.parametrize('rate', [100.0, 250.0, 500.0])
 def test_evidence_accumulates_per_second_whatever_the_rate(model, rate):
     """Closed form: a constant score z adds (z - drift) per evidence_interval; the alarm comes once

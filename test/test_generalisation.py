@@ -622,11 +622,11 @@ def test_the_calibrated_range_warn_is_the_same_frame_by_frame_and_in_a_block(mod
 def _batch_of(frame):
     """A one-row ResidualBatch of a ResidualFrame."""
     from youbot_fdi.fdi.residuals import ResidualBatch, ROW_ARRAYS
+    defaults = ('torque_scale', 'torque_confirmed', 'friction_level')  # unset: what they stand for
     rows = {name: np.asarray([getattr(frame, name) if name != 'velocity_mode'
                               else frame.velocity_mode])
-            for name in ROW_ARRAYS if name not in ('command_speed', 'torque_scale', 'torque_confirmed')}
-    rows['torque_scale'] = frame.signal('torque_scale')[None]
-    rows['torque_confirmed'] = frame.signal('torque_confirmed')[None]
+            for name in ROW_ARRAYS if name not in ('command_speed', *defaults)}
+    rows.update({name: frame.signal(name)[None] for name in defaults})
     return ResidualBatch(values={f: v[None] for f, v in frame.values.items()},
                          bounds={f: b[None] for f, b in frame.bounds.items()},
                          command_speed=frame.velocity[None], **rows)

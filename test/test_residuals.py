@@ -11,7 +11,7 @@ import pytest
 from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, SPEED_NOISE_SIGMAS,
-                                      PRIOR_SETTINGS, ResidualEvaluator, ResidualFrame,
+                                      PRIOR_SETTINGS, ResidualBatch, ResidualEvaluator, ResidualFrame,
                                       bound_weights)
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
@@ -451,3 +451,26 @@ def test_the_torque_shift_scale_keeps_what_a_manoeuvre_left_not_the_steady_allow
     np.testing.assert_allclose(bound, within + 0.3 + remembered, rtol=1e-9)
     coulomb = 1.5 * model.dynamics.coulomb_span(motion, evaluator._speed_uncertainty)
     np.testing.assert_allclose(scale, within + remembered + coulomb, rtol=1e-9)
+
+
+def test_a_residual_vector_carries_the_friction_level_and_an_older_one_lacks_it(model):
+    """The labelled residual vector (the residual node's message) carries each wheel's friction
+    level exactly; a vector from a generator that does not publish it (older) gives frames with
+    none, which stand for 0 (the shift's scale widened by nothing); any other label missing is an
+    error that names it."""
+    from frames import torque_frame
+    names, n = model.wheel_names, len(model.wheel_names)
+    frame = replace(torque_frame(model, 3.0, 0.5), friction_level=np.array([0.1, 0.2, 0.3, 0.4]))
+    labels, values, bounds = frame.to_labelled(names)
+    back = ResidualFrame.from_labelled(3.0, labels, values, bounds, names)
+    np.testing.assert_array_equal(back.friction_level, [0.1, 0.2, 0.3, 0.4])
+    older = [i for i, label in enumerate(labels) if not label.startswith('friction_level_')]
+    assert len(older) == len(labels) - n
+    before = ResidualFrame.from_labelled(3.0, [labels[i] for i in older], values[older], bounds[older], names)
+    assert before.friction_level is None
+    np.testing.assert_array_equal(before.signal('friction_level'), np.zeros(n))
+    np.testing.assert_array_equal(ResidualBatch.of_frames([before]).friction_level, np.zeros((1, n)))
+    np.testing.assert_array_equal(before.values['torque'], frame.values['torque'])
+    with pytest.raises(ValueError, match='lacks shift_scale_fl'):
+        kept = [i for i, label in enumerate(labels) if label != 'shift_scale_fl']
+        ResidualFrame.from_labelled(3.0, [labels[i] for i in kept], values[kept], bounds[kept], names)

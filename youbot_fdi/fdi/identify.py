@@ -1048,6 +1048,8 @@ def false_alarm_rates(model, batch, settings, residual_data):
     interval = float(np.median(np.diff(batch.stamp))) if len(batch) > 1 else settings.evidence_interval
     fresh = (decision._breaking_away(batch.velocity, batch.stamp)
              | decision.operating_point_changes(batch.velocity, batch.load_factor))  # levels afresh
+    torque_scale = torque_scale + decision.friction_change(batch.velocity, batch.friction_level,
+                                                           batch.stamp)
     shift = decision.torque_shift(batch.values['torque'], torque_bound, torque_scale, batch.stamp,
                                   np.zeros(model.dynamics.n_wheels, dtype=bool), fresh)
     magnitude, shift_up_down = decision.increments(scores, shift, weight)

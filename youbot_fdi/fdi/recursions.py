@@ -223,6 +223,10 @@ class ExponentialAverage:
         self.value, self.weight = average[-1], weight[-1]
         return before
 
+    def after(self) -> np.ndarray:
+        """The average after each row of the last :meth:`advance` (N, n)."""
+        return self._after[0]
+
     def rewind(self, row: int) -> None:
         """Go back to the state after ``row`` of the last :meth:`advance`."""
         average, weight = self._after

@@ -66,7 +66,11 @@ FAMILIES = ('torque', 'observer', 'command', 'encoder')
 SIGNALS = (('speed', 'velocity'), ('effort', 'torque'), ('commanded', 'command'),
            ('frozen', 'frozen'), ('effort_frozen', 'effort_frozen'),
            ('position_frozen', 'position_frozen'), ('silent', 'silent'),
-           ('shift_scale', 'torque_scale'), ('confirmed', 'torque_confirmed'))
+           ('shift_scale', 'torque_scale'), ('confirmed', 'torque_confirmed'),
+           ('friction_level', 'friction_level'))
+#: Signals a newer residual generator publishes and an older one's vectors lack: the decision
+#: takes them as unset (:meth:`ResidualFrame.signal`).
+OPTIONAL_SIGNALS = ('friction_level',)
 #: Each bound is linear in its operating-point features: u = sum_j settings[name_j] * feature_j.
 #: Per bound, the settings that weigh its features, in feature order (``identify`` fits them by
 #: quantile regression on a nominal recording). ``effort`` is the command family in current mode.
@@ -80,6 +84,8 @@ BOUND_TERMS = {
     'encoder': ('encoder_sigma', 'encoder_speed_fraction', 'encoder_change_fraction',
                 'timing_jitter'),
 }
+#: The torque bound's friction feature (|load x friction level|, BOUND_TERMS order).
+FRICTION_FEATURE = BOUND_TERMS['torque'].index('torque_friction_fraction')
 #: The command bound's terms of the predicted transient (its distance to the command, its
 #: acceleration), which the loop remembers after the transient has ended
 #: (:meth:`ResidualEvaluator._remembered_transient`).
@@ -171,17 +177,23 @@ class ResidualFrame:
     #: the share (0..1) of each wheel's torque residual a fault of that wheel alone would also
     #: show in the parity relations (:meth:`ResidualEvaluator.parity_confirmed`; None: all)
     torque_confirmed: np.ndarray = None
+    #: each wheel's friction level at the load factor [N·m] (the torque bound's friction feature):
+    #: the friction whose split into Coulomb and viscous a calibration at one speed cannot pin
+    #: down, so its change with the speed is unknown (None: 0, nothing allowed for it)
+    friction_level: np.ndarray = None
     #: the batch of one this frame is (:meth:`ResidualBatch.frame`), which the decision takes as
     #: it is instead of building it again (the live path); None for a frame made otherwise
     batch: ResidualBatch | None = field(default=None, repr=False, compare=False)
 
     def signal(self, name: str) -> np.ndarray:
         """The per-wheel signal ``name`` (a field of :data:`SIGNALS`), an unset one as it stands
-        for: the shift scale the torque bound, the confirmed share 1 (all)."""
+        for: the shift scale the torque bound, the confirmed share 1 (all), the friction level 0."""
         value = getattr(self, name)
         if value is not None:
             return value
-        return self.bounds['torque'] if name == 'torque_scale' else np.ones(len(self.velocity))
+        if name == 'torque_scale':
+            return self.bounds['torque']
+        return np.zeros(len(self.velocity)) if name == 'friction_level' else np.ones(len(self.velocity))
 
     def names(self, wheel_names: Sequence[str]) -> list[str]:
         """Residual names in family-major order, e.g. ``torque_fl``."""
@@ -233,7 +245,8 @@ class ResidualFrame:
                 msg = f'residual vector lacks {err.args[0]}'
                 raise ValueError(msg) from None
 
-        signals = {array: pick(prefix, values) for prefix, array in SIGNALS}
+        signals = {array: (None if array in OPTIONAL_SIGNALS and f'{prefix}_{suffixes[0]}' not in index
+                           else pick(prefix, values)) for prefix, array in SIGNALS}
         for label in SCALAR_SIGNALS:
             if label not in index:
                 msg = f'residual vector lacks {label}'
@@ -248,6 +261,7 @@ class ResidualFrame:
                    position_frozen=signals['position_frozen'].astype(int),
                    silent=signals['silent'], torque_scale=signals['torque_scale'],
                    torque_confirmed=signals['torque_confirmed'],
+                   friction_level=signals['friction_level'],
                    load_factor=float(values[index['load_factor']]),
                    outside_calibration=float(values[index['outside_calibration']]))
 
@@ -258,7 +272,7 @@ SCALAR_SIGNALS = ('command_mode', 'load_factor', 'outside_calibration')
 #: The per-row arrays of a ResidualBatch besides ``values`` and ``bounds``.
 ROW_ARRAYS = ('stamp', 'velocity', 'torque', 'velocity_mode', 'command', 'frozen', 'effort_frozen',
               'position_frozen', 'silent', 'load_factor', 'command_speed', 'outside_calibration',
-              'torque_scale', 'torque_confirmed')
+              'torque_scale', 'torque_confirmed', 'friction_level')
 
 
 @dataclass(frozen=True)
@@ -285,6 +299,7 @@ class ResidualBatch:
     outside_calibration: np.ndarray  # (N,) wheels outside the learned range (bit mask)
     torque_scale: np.ndarray  # (N, n) as in ResidualFrame
     torque_confirmed: np.ndarray  # (N, n) as in ResidualFrame
+    friction_level: np.ndarray  # (N, n) as in ResidualFrame [N·m]
     features: dict = None
 
     def __len__(self):
@@ -299,7 +314,7 @@ class ResidualBatch:
             command=self.command[k], frozen=self.frozen[k], effort_frozen=self.effort_frozen[k],
             position_frozen=self.position_frozen[k], silent=self.silent[k],
             torque_scale=self.torque_scale[k], torque_confirmed=self.torque_confirmed[k],
-            load_factor=float(self.load_factor[k]),
+            friction_level=self.friction_level[k], load_factor=float(self.load_factor[k]),
             outside_calibration=float(self.outside_calibration[k]),
             batch=self if len(self.stamp) == 1 else None)
 
@@ -339,7 +354,8 @@ class ResidualBatch:
                    load_factor=rows(lambda f: f.load_factor), command_speed=np.full((len(frames), n), np.nan),
                    outside_calibration=rows(lambda f: f.outside_calibration),
                    torque_scale=rows(lambda f: f.signal('torque_scale')),
-                   torque_confirmed=rows(lambda f: f.signal('torque_confirmed')))
+                   torque_confirmed=rows(lambda f: f.signal('torque_confirmed')),
+                   friction_level=rows(lambda f: f.signal('friction_level')))
 
     @classmethod
     def concatenate(cls, batches: Iterable[ResidualBatch]) -> ResidualBatch:
@@ -589,7 +605,7 @@ class ResidualEvaluator:
             effort_frozen=effort_frozen, position_frozen=position_frozen, silent=silent,
             load_factor=np.full(rows, np.nan), command_speed=nan,
             outside_calibration=np.zeros(rows), torque_scale=np.ones((rows, n)),
-            torque_confirmed=np.ones((rows, n)), features=features)
+            torque_confirmed=np.ones((rows, n)), friction_level=np.zeros((rows, n)), features=features)
 
     def missing(self, sample: JointSample) -> ResidualFrame:
         """:meth:`missing_batch` for one sample (:class:`~youbot_fdi.samples.JointSample`): a
@@ -945,7 +961,7 @@ class ResidualEvaluator:
                 velocity_mode=p.velocity_mode, command=empty, frozen=counts, effort_frozen=counts,
                 position_frozen=counts, silent=empty, load_factor=np.empty(0),
                 command_speed=empty, outside_calibration=np.empty(0), torque_scale=empty,
-                torque_confirmed=empty,
+                torque_confirmed=empty, friction_level=empty,
                 features={})
         stamp = joints.stamp
         position, velocity, torque = (self.signs * a for a in
@@ -1031,7 +1047,8 @@ class ResidualEvaluator:
             frozen=frozen, effort_frozen=effort_frozen, position_frozen=position_frozen,
             silent=np.zeros((rows, n)), load_factor=p.load_factor, command_speed=p.from_commands,
             outside_calibration=outside, torque_scale=torque_scale,
-            torque_confirmed=self.parity_confirmed(torque_r, slipping), features=features)
+            torque_confirmed=self.parity_confirmed(torque_r, slipping),
+            friction_level=torque_f[..., FRICTION_FEATURE], features=features)
         return batch.select(~restart) if restart.any() else batch
 
 
