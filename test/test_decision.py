@@ -265,20 +265,28 @@ def test_a_torque_shift_is_evidence_only_at_the_operating_point_of_its_level(mod
     within (shift_threshold / (1 - shift_drift)) intervals; at twice the speed it is another
     operating point, where the model's bias is another, and the level starts afresh (no alarm)."""
     s = replace(FdiSettings(), breakaway_time=0.0)
-    decision = DecisionMaker(model.wheel_names, s, load_residual_data())
-    rate = 100.0
+    first = shift_step_alarm(model, s, lambda stamp: torque_frame(model, stamp, -0.5),
+                             lambda stamp: torque_frame(model, stamp, 0.5, speed=speed_after))
+    assert first == (pytest.approx(one_bound_shift_alarm(s), abs=0.01 + 1e-9) if alarms else math.inf)
+
+
+def shift_step_alarm(model, settings_, before, after, rate=100.0):
+    """When [s after the step] the first ERROR comes in the second after 4 s of frames
+    ``before(stamp)`` and then frames ``after(stamp)`` at ``rate`` [Hz] (inf: none); none before."""
+    decision = DecisionMaker(model.wheel_names, settings_, load_residual_data())
     for k in range(int(4.0 * rate)):
-        assert not decision.update(torque_frame(model, 10.0 + k / rate, -0.5))
-    first = math.inf
+        assert not decision.update(before(10.0 + k / rate))
     for k in range(int(4.0 * rate), int(5.0 * rate)):
         stamp = 10.0 + k / rate
-        if any(e.level == 'ERROR' for e in decision.update(torque_frame(model, stamp, 0.5, speed=speed_after))):
-            first = min(first, stamp - 14.0)
-    if alarms:
-        intervals = math.ceil(s.shift_threshold / (1.0 - s.shift_drift)) - 1
-        assert first == pytest.approx(intervals / rate, abs=1.0 / rate + 1e-9)
-    else:
-        assert first == math.inf
+        if any(e.level == 'ERROR' for e in decision.update(after(stamp))):
+            return stamp - 14.0
+    return math.inf
+
+
+def one_bound_shift_alarm(settings_, rate=100.0):
+    """When [s] a torque shift of one scale alarms at ``rate`` [Hz]: after shift_threshold / (1 -
+    shift_drift) intervals."""
+    return (math.ceil(settings_.shift_threshold / (1.0 - settings_.shift_drift)) - 1) / rate
 
 
 def test_the_friction_change_within_an_operating_point_against_its_closed_form(model):
@@ -330,23 +338,12 @@ def test_a_torque_shift_with_a_speed_change_allows_the_friction_an_unknown_split
     once less the reading's noise (5 x 0.37 / 2): the shift is within what the scale allows, no
     alarm in the second after."""
     s = replace(FdiSettings(), breakaway_time=0.0)
-    decision = DecisionMaker(model.wheel_names, s, load_residual_data())
-    rate, n = 100.0, len(model.wheel_names)
-    for k in range(int(4.0 * rate)):
-        frame = replace(torque_frame(model, 10.0 + k / rate, -0.5), friction_level=np.full(n, level))
-        assert not decision.update(frame)
-    first = math.inf
-    for k in range(int(4.0 * rate), int(5.0 * rate)):
-        stamp = 10.0 + k / rate
-        frame = torque_frame(model, stamp, 0.5)
-        frame = replace(frame, velocity=np.array([1.6, 2.0, 2.0, 2.0]), friction_level=np.full(n, level))
-        if any(e.level == 'ERROR' for e in decision.update(frame)):
-            first = min(first, stamp - 14.0)
-    if alarms:
-        intervals = math.ceil(s.shift_threshold / (1.0 - s.shift_drift)) - 1
-        assert first == pytest.approx(intervals / rate, abs=1.0 / rate + 1e-9)
-    else:
-        assert first == math.inf
+    levels = np.full(len(model.wheel_names), level)
+    first = shift_step_alarm(
+        model, s, lambda stamp: replace(torque_frame(model, stamp, -0.5), friction_level=levels),
+        lambda stamp: replace(torque_frame(model, stamp, 0.5), velocity=np.array([1.6, 2.0, 2.0, 2.0]),
+                              friction_level=levels))
+    assert first == (pytest.approx(one_bound_shift_alarm(s), abs=0.01 + 1e-9) if alarms else math.inf)
 
 
 @pytest.mark.parametrize('rate', [100.0, 250.0, 500.0])
