@@ -282,12 +282,11 @@ class DecisionMaker:
                                  np.asarray(load_factor, dtype=float).reshape(-1, 1)], axis=1)
         total, count = self._operating_point
         if len(points) == 1 and count > 0:  # one row (the live path): the same, in plain steps
-            row = points[0]
-            mean = total / count
-            away = np.isfinite(row).all() and bool(self._away(row, mean))
-            self.reference_speeds = (np.full_like(row, np.nan) if not np.isfinite(row).all()
-                                     else row if away else mean)[None, :-1]
-            if not np.isfinite(row).all():
+            row, mean = points[0], total / count
+            finite = bool(np.isfinite(row).all())
+            away = finite and bool(self._away(row, mean))
+            self.reference_speeds = (row if away else mean if finite else np.full_like(row, np.nan))[None, :-1]
+            if not finite:
                 return np.zeros(1, dtype=bool)
             if away:
                 self._operating_point = (row.copy(), 1)
