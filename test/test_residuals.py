@@ -169,7 +169,8 @@ def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):
     step = 0.002  # 500 Hz
     needed = FROZEN_MIN_TICKS * evaluator.position_quantum / step + SPEED_NOISE_SIGMAS * sigma
     speeds = np.array([[0.5 * needed, 0.99 * needed, 1.01 * needed, 3 * needed]])
-    moving = evaluator._moving(speeds, np.zeros((1, 4)), np.array([[False]]), step, np.zeros((1, 4)))
+    moving = evaluator._moving(speeds, np.zeros((1, 4)), np.array([[False]]), step, np.zeros((1, 4)),
+                               np.zeros((1, 4)))
     assert moving.tolist() == [[False, False, True, True]]
 
 
@@ -192,8 +193,49 @@ def test_a_lagging_speed_reading_after_a_stop_is_not_a_turning_wheel(model):
         _, features = evaluator._encoder_terms(position, position, speed, change, dt)
         bound = evaluator.bound('encoder', features)
         np.testing.assert_allclose(bound, sigma + np.abs(change) * tau)  # the closed form
-        moving = evaluator._moving(speed, np.zeros((1, 4)), np.array([[False]]), dt, bound)
+        moving = evaluator._moving(speed, np.zeros((1, 4)), np.array([[False]]), dt, bound, np.zeros((1, 4)))
         assert moving.tolist() == [expected]
+
+
+def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(model):
+    """Four mecanum wheels have one parity relation, B = +-(1/2, ...), so a reading off by e on
+    one wheel reads e/4 on each wheel's relation: the other wheels' rigid motion gives the wheel
+    its true speed back exactly. The witness takes it less slip_limit / |B_w|^2 (1.1 x 0.05 +
+    3 x 0.01 = 0.085 rad/s over 1/4: 0.34 rad/s), that tolerance times the row's largest torque
+    over calibrated_effort where larger (force 2: 0.68 rad/s); only for the row's one wheel whose
+    position repeated (two cannot be told apart), nothing where a torque is unknown or on three
+    wheels. In current mode a repeated position of a wheel witnessed turning two ticks is
+    frozen; in velocity mode the command and the reading witness, as before."""
+    settings = replace(FdiSettings(), calibrated_slip=0.05, speed_sigma=0.01, calibrated_effort=0.5)
+    evaluator = ResidualEvaluator(model, settings)
+    assert evaluator._rigid_tolerance == pytest.approx(np.full(4, 0.34))
+    true = model.kinematics.inverse(np.array([0.2, -0.05, 0.2]))  # [rad/s]
+    frozen = true.copy()
+    frozen[0] = 0.0  # an encoder-derived reading freezes at 0
+    np.testing.assert_allclose(evaluator.rigid_speed(frozen[None])[0, 0], true[0], rtol=1e-12)
+    np.testing.assert_allclose(evaluator.rigid_speed(true[None]), true[None], atol=1e-12)  # rigid: itself
+    speeds = np.tile(frozen, (5, 1))
+    one, two = [True, False, False, False], [True, False, True, False]
+    repeated = np.array([one, one, two, one, one])
+    torque = np.full((5, 4), 0.3)
+    torque[1, 2] = -1.0  # twice the calibrated effort
+    torque[3, 1] = np.nan
+    witnessed = evaluator._rigid_witness(speeds, repeated, torque)
+    expected = np.zeros((5, 4))
+    expected[[0, 4], 0] = abs(true[0]) - 0.34
+    expected[1, 0] = abs(true[0]) - 0.68
+    assert abs(true[0]) > 0.68
+    np.testing.assert_allclose(witnessed, expected, atol=1e-12)
+    step = 0.01
+    current_mode = np.zeros((5, 1), dtype=bool)
+    moving = evaluator._moving(speeds, np.zeros((5, 4)), current_mode, step, np.zeros((5, 4)), witnessed)
+    assert moving[:, 0].tolist() == [True, True, False, False, True]
+    velocity_mode = ~current_mode
+    assert not evaluator._moving(speeds, np.zeros((5, 4)), velocity_mode, step, np.zeros((5, 4)),
+                                 witnessed)[:, 0].any()
+    three = ResidualEvaluator(load_model('robotino'), settings)
+    assert not three._rigid_witness(np.array([[0.0, 2.0, -2.0]]), np.array([[True, False, False]]),
+                                    np.zeros((1, 3))).any()
 
 
 def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(model):

@@ -16,8 +16,9 @@
    evidence is up, or beside another wheel's fault (its wheel fault alarm set, or cleared less
    than ``heal_time`` ago: a faulty wheel drags the others off the model). A clear excess on a
    wheel that rose later is a second fault. A position
-   reading that repeats exactly while the wheel is commanded and measured to turn is direct
-   evidence of a frozen sensor (``frozen_samples`` in a row), at any rate. While the base breaks
+   reading that repeats exactly while the wheel is commanded and measured to turn (current
+   mode: or the other wheels' rigid motion says it turns) is direct evidence of a frozen sensor
+   (``frozen_samples`` in a row), at any rate. While the base breaks
    away from rest (``breakaway_time`` after a sample in which every wheel stood) the torque
    residuals add no evidence: the wheels slip and break static friction until the base has
    caught up with them, outside the rolling contact law the model is made of.
@@ -771,8 +772,9 @@ class DecisionMaker:
         for w in np.flatnonzero(self._silent(frame.silent)):
             diagnoses[int(w)] = (FaultKind.COMM_LOSS, (f'silent_{self.suffixes[w]}',))
         # A freeze shows as a position that stops following the speed (encoder_<w>), or repeats
-        # exactly while the wheel is commanded and measured to turn; frozen readings alone prove
-        # nothing: a standing wheel reads the same every sample.
+        # exactly while the wheel is commanded and measured (current mode: or witnessed by the
+        # other wheels) to turn; frozen readings alone prove nothing: a standing wheel reads the
+        # same every sample.
         for w in sorted((set(np.flatnonzero(self._family('encoder'))) | still_frozen | stopped)
                         - set(diagnoses)):
             # Every reading of the module stale together (effort too, as long as the rest): no

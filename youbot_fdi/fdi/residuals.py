@@ -450,6 +450,12 @@ class ResidualEvaluator:
         #: what calibration measured (widened by its margin) and three times the speed
         #: reading's noise on it [rad/s] (inf: never)
         self.slip_limit = slip_limit(settings)
+        #: how far (n,) [rad/s] the speed the other wheels' rigid motion gives a wheel
+        #: (:meth:`rigid_speed`) may be from its own on nominal data: a part no rigid motion
+        #: explains of at most ``slip_limit`` on the wheel's own relation, |(P w)_w| <= slip_limit,
+        #: is a wheel error of at most slip_limit / |B_w|^2 (inf: no relation sees the wheel)
+        self._rigid_tolerance = np.where(self._parity_observable,
+                                         self.slip_limit / self._parity_weight, np.inf)
         #: whether the wheels' speeds can fit no motion of the base (more wheels than its three
         #: degrees of freedom: a part of their speeds no motion explains)
         self.shows_slip = bool(np.abs(self.kinematics.slip_matrix).max() > RANK_TOLERANCE)
@@ -545,15 +551,14 @@ class ResidualEvaluator:
         and leaves them untouched. So a wheel's torque evidence counts only as far as the
         parity relations say it is that wheel's (docs/fdi.md, "Decision")."""
         share = np.ones_like(torque_residual)
-        basis = self.kinematics.parity_basis
-        if not basis.shape[1]:
+        if not self.kinematics.parity_basis.shape[1]:
             return share
         known = np.isfinite(torque_residual).all(axis=1) & ~slipping
         every = known.all()  # (usually; always live) no rows to pick
         if not every and not known.any():
             return share
         residual = torque_residual if every else torque_residual[known]
-        alone = ((residual @ basis) @ basis.T) / self._parity_weight  # (M, n)
+        alone = self._parity_alone(residual)  # (M, n)
         size = np.abs(residual)
         judged = self._parity_observable & (size > 0.0)
         ratio = np.divide(np.abs(alone), size, out=np.ones_like(size), where=judged)
@@ -563,6 +568,21 @@ class ResidualEvaluator:
             return confirmed
         share[known] = confirmed
         return share
+
+    def _parity_alone(self, values: np.ndarray) -> np.ndarray:
+        """Per wheel (N, n), the size a value of wheel w alone would need to give the parity
+        relations what ``values`` (N, n) give them: ``(B_w . B^T x) / |B_w|^2`` (B the
+        ``Kinematics.parity_basis``; 0 where it has no relations)."""
+        basis = self.kinematics.parity_basis
+        return ((values @ basis) @ basis.T) / self._parity_weight
+
+    def rigid_speed(self, velocity: np.ndarray) -> np.ndarray:
+        """The speed [rad/s] (N, n) the other wheels' rigid base motion gives each wheel, from
+        the wheel speeds ``velocity`` (N, n) [rad/s]: its own reading less the error of its
+        reading alone that the parity relations show (:meth:`_parity_alone`). Its own reading
+        where no relation sees it (three wheels); within :attr:`_rigid_tolerance` of the
+        reading on nominal data."""
+        return velocity - self._parity_alone(velocity)
 
     # ------------------------------------------------------------------ missing readings
     def silence(self, stamps: np.ndarray, answered: np.ndarray) -> np.ndarray:
@@ -912,9 +932,11 @@ class ResidualEvaluator:
         features = columns(1.0, np.abs(mean_speed) * step, np.abs(change) * step, np.abs(mean_speed))
         return residual, features
 
-    def _moving(self, mean_speed, target, velocity_mode, step, encoder_bound):
+    def _moving(self, mean_speed, target, velocity_mode, step, encoder_bound, witnessed):
         """Wheels that should have turned at least ``FROZEN_MIN_TICKS`` within the interval, by the
-        measured speed less its noise and (velocity mode) the commanded speed, less the encoder
+        measured speed less its noise and (velocity mode) the commanded speed, or (current mode)
+        by the speed the other wheels' motion witnesses, ``witnessed`` (N, n) [rad/s]
+        (:meth:`_rigid_witness`), less the encoder
         bound ``encoder_bound`` (N, n) [rad]: only then is a repeated position reading evidence
         (a lagging speed reading keeps turning for a while after the wheel stops; a noisy one is
         not zero at rest; an interval too short for a tick proves nothing).
@@ -927,8 +949,41 @@ class ResidualEvaluator:
         whose speed reading lags 40 ms, had its wheel read as turning 0.4 rad/s after it had
         stopped, an ``encoder_freeze`` without a fault."""
         measured = np.maximum(0.0, np.abs(mean_speed) - self._speed_uncertainty)
-        speed = np.where(velocity_mode, np.minimum(measured, np.abs(target)), measured)
+        speed = np.where(velocity_mode, np.minimum(measured, np.abs(target)),
+                         np.maximum(measured, witnessed))
         return speed * step - encoder_bound >= FROZEN_MIN_TICKS * self.position_quantum
+
+    def _rigid_witness(self, mean_speed, repeated, torque):
+        """The speed [rad/s] (N, n) the other wheels' rigid motion says a wheel turns at, beyond
+        what calibration saw of speeds no rigid motion explains (:meth:`rigid_speed`, less
+        :attr:`_rigid_tolerance`), for the one wheel of a row whose position reading repeated
+        (``repeated`` (N, n)); 0 elsewhere, and on a base of three wheels. ``mean_speed`` (N, n)
+        [rad/s] the interval's speed readings, ``torque`` (N, n) [N·m] the measured torques.
+
+        Why: a speed reading differentiated from the encoder freezes with it, and in current
+        mode no command says the wheel turns; on a base of four wheels or more the others' rigid
+        motion still can, from kinematics alone (no floor, load or friction in it). The
+        relations tell how far the readings are from a rigid motion, not which reading is off
+        (four mecanum wheels have one relation, which sees every wheel alike): a repeated
+        position names a wheel only when it is the row's only one, as two repeated readings (a
+        frozen one, and one of a wheel standing while the base turns about it) cannot be told
+        apart. A wheel that truly stands while the others move (held by its friction) has its
+        contact slide at that speed; calibration measured the contacts sliding up to
+        ``calibrated_slip`` under torques up to ``calibrated_effort``, and a contact slides in
+        proportion to the force it passes, so beyond that torque the tolerance grows with the
+        largest wheel torque of the row (extrapolation widens, docs/fdi.md)."""
+        witnessed = np.zeros_like(mean_speed)
+        only = repeated & (np.count_nonzero(repeated, axis=1) == 1)[:, None]
+        if not (self.shows_slip and only.any()):
+            return witnessed
+        rows = np.flatnonzero(only.any(axis=1))
+        with np.errstate(divide='ignore', invalid='ignore'):  # none calibrated: no witness
+            force = np.abs(torque[rows]).max(axis=1) / self.settings.calibrated_effort
+        # a torque unknown (NaN) leaves the force unknown: no witness either
+        tolerance = self._rigid_tolerance * np.maximum(1.0, np.nan_to_num(force, nan=np.inf))[:, None]
+        speed = np.abs(self.rigid_speed(mean_speed[rows])) - tolerance
+        witnessed[rows] = np.where(only[rows], np.maximum(0.0, np.nan_to_num(speed, nan=0.0)), 0.0)
+        return witnessed
 
     @staticmethod
     def _observer_features(predicted):
@@ -1007,12 +1062,13 @@ class ResidualEvaluator:
         encoder_r, encoder_f = self._encoder_terms(position, prev_position, mean_speed,
                                                    velocity - prev_velocity, step)
 
-        unchanged = (position == prev_position) & (velocity == prev_velocity)
+        repeated = position == prev_position
+        unchanged = repeated & (velocity == prev_velocity)
         frozen = run_lengths(unchanged, self._frozen, restart)
         effort_frozen = run_lengths(unchanged & (torque == prev_torque), self._effort_frozen, restart)
         encoder_u = self.bound('encoder', encoder_f)
-        stopped = (position == prev_position) & self._moving(mean_speed, p.commanded,
-                                                             p.velocity_mode[:, None], step, encoder_u)
+        stopped = repeated & self._moving(mean_speed, p.commanded, p.velocity_mode[:, None], step,
+                                          encoder_u, self._rigid_witness(mean_speed, repeated, torque))
         position_frozen = run_lengths(stopped, self._position_frozen, restart)
 
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
