@@ -203,7 +203,8 @@ def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(mod
     its true speed back exactly. The witness takes it less slip_limit / |B_w|^2 (1.1 x 0.05 +
     3 x 0.01 = 0.085 rad/s over 1/4: 0.34 rad/s), that tolerance times the row's largest torque
     over calibrated_effort where larger (force 2: 0.68 rad/s); only for the row's one wheel whose
-    position repeated (two cannot be told apart), nothing where a torque is unknown or on three
+    position repeated (two cannot be told apart) and whose speed reading repeated too (a
+    blocked wheel's noisy reading does not), nothing where a torque is unknown or on three
     wheels. In current mode a repeated position of a wheel witnessed turning two ticks is
     frozen; in velocity mode the command and the reading witness, as before."""
     settings = replace(FdiSettings(), calibrated_slip=0.05, speed_sigma=0.01, calibrated_effort=0.5)
@@ -220,7 +221,7 @@ def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(mod
     torque = np.full((5, 4), 0.3)
     torque[1, 2] = -1.0  # twice the calibrated effort
     torque[3, 1] = np.nan
-    witnessed = evaluator._rigid_witness(speeds, repeated, torque)
+    witnessed = evaluator._rigid_witness(speeds, repeated, repeated, torque)
     expected = np.zeros((5, 4))
     expected[[0, 4], 0] = abs(true[0]) - 0.34
     expected[1, 0] = abs(true[0]) - 0.68
@@ -234,8 +235,10 @@ def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(mod
     assert not evaluator._moving(speeds, np.zeros((5, 4)), velocity_mode, step, np.zeros((5, 4)),
                                  witnessed)[:, 0].any()
     three = ResidualEvaluator(load_model('robotino'), settings)
-    assert not three._rigid_witness(np.array([[0.0, 2.0, -2.0]]), np.array([[True, False, False]]),
-                                    np.zeros((1, 3))).any()
+    noisy = np.zeros_like(repeated)  # the same positions, a speed reading that changed (blocked)
+    assert not evaluator._rigid_witness(speeds, repeated, noisy, torque).any()
+    alone = np.array([[True, False, False]])
+    assert not three._rigid_witness(np.array([[0.0, 2.0, -2.0]]), alone, alone, np.zeros((1, 3))).any()
 
 
 def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(model):

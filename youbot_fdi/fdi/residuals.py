@@ -953,11 +953,12 @@ class ResidualEvaluator:
                          np.maximum(measured, witnessed))
         return speed * step - encoder_bound >= FROZEN_MIN_TICKS * self.position_quantum
 
-    def _rigid_witness(self, mean_speed, repeated, torque):
+    def _rigid_witness(self, mean_speed, repeated, unchanged, torque):
         """The speed [rad/s] (N, n) the other wheels' rigid motion says a wheel turns at, beyond
         what calibration saw of speeds no rigid motion explains (:meth:`rigid_speed`, less
         :attr:`_rigid_tolerance`), for the one wheel of a row whose position reading repeated
-        (``repeated`` (N, n)); 0 elsewhere, and on a base of three wheels. ``mean_speed`` (N, n)
+        (``repeated`` (N, n)), if its speed reading repeated too (``unchanged`` (N, n)); 0
+        elsewhere, and on a base of three wheels. ``mean_speed`` (N, n)
         [rad/s] the interval's speed readings, ``torque`` (N, n) [N·m] the measured torques.
 
         Why: a speed reading differentiated from the encoder freezes with it, and in current
@@ -971,9 +972,12 @@ class ResidualEvaluator:
         contact slide at that speed; calibration measured the contacts sliding up to
         ``calibrated_slip`` under torques up to ``calibrated_effort``, and a contact slides in
         proportion to the force it passes, so beyond that torque the tolerance grows with the
-        largest wheel torque of the row (extrapolation widens, docs/fdi.md)."""
+        largest wheel torque of the row (extrapolation widens, docs/fdi.md). A frozen encoder
+        stops the wheel's whole reading, its position and the speed differentiated from it (or
+        held); a blocked wheel's speed reading still shows its noise, and the torque path names
+        it ``stuck``: so the witness counts only for a reading whose speed repeated too."""
         witnessed = np.zeros_like(mean_speed)
-        only = repeated & (np.count_nonzero(repeated, axis=1) == 1)[:, None]
+        only = unchanged & (np.count_nonzero(repeated, axis=1) == 1)[:, None]
         if not (self.shows_slip and only.any()):
             return witnessed
         rows = np.flatnonzero(only.any(axis=1))
@@ -1068,7 +1072,8 @@ class ResidualEvaluator:
         effort_frozen = run_lengths(unchanged & (torque == prev_torque), self._effort_frozen, restart)
         encoder_u = self.bound('encoder', encoder_f)
         stopped = repeated & self._moving(mean_speed, p.commanded, p.velocity_mode[:, None], step,
-                                          encoder_u, self._rigid_witness(mean_speed, repeated, torque))
+                                          encoder_u,
+                                          self._rigid_witness(mean_speed, repeated, unchanged, torque))
         position_frozen = run_lengths(stopped, self._position_frozen, restart)
 
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
