@@ -981,9 +981,10 @@ class ResidualEvaluator:
         if not (self.shows_slip and only.any()):
             return witnessed
         rows = np.flatnonzero(only.any(axis=1))
-        with np.errstate(divide='ignore', invalid='ignore'):  # none calibrated: no witness
+        # the force over calibration's: inf where calibration measured no torque (no witness),
+        # NaN where a torque is unknown (no witness either), 0 without a calibrated effort
+        with np.errstate(divide='ignore', invalid='ignore'):
             force = np.abs(torque[rows]).max(axis=1) / self.settings.calibrated_effort
-        # a torque unknown (NaN) leaves the force unknown: no witness either
         tolerance = self._rigid_tolerance * np.maximum(1.0, np.nan_to_num(force, nan=np.inf))[:, None]
         speed = np.abs(self.rigid_speed(mean_speed[rows])) - tolerance
         witnessed[rows] = np.where(only[rows], np.maximum(0.0, np.nan_to_num(speed, nan=0.0)), 0.0)
