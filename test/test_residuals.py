@@ -204,8 +204,8 @@ def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(mod
     3 x 0.01 = 0.085 rad/s over 1/4: 0.34 rad/s), that tolerance times the row's largest torque
     over calibrated_effort where larger (force 2: 0.68 rad/s); only for the row's one wheel whose
     position repeated (two cannot be told apart) and whose speed reading repeated too (a
-    blocked wheel's noisy reading does not), nothing where a torque is unknown or on three
-    wheels. In current mode a repeated position of a wheel witnessed turning two ticks is
+    blocked wheel's noisy reading does not), nothing where a torque or a speed is unknown or on
+    three wheels. In current mode a repeated position of a wheel witnessed turning two ticks is
     frozen; in velocity mode the command and the reading witness, as before."""
     settings = replace(FdiSettings(), calibrated_slip=0.05, speed_sigma=0.01, calibrated_effort=0.5)
     evaluator = ResidualEvaluator(model, settings)
@@ -235,6 +235,9 @@ def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(mod
     assert not evaluator._moving(speeds, np.zeros((5, 4)), velocity_mode, step, np.zeros((5, 4)),
                                  witnessed)[:, 0].any()
     three = ResidualEvaluator(load_model('robotino'), settings)
+    unread = speeds.copy()
+    unread[:, 2] = np.nan  # a wheel without a speed reading: no rigid motion to witness
+    assert not evaluator._rigid_witness(unread, repeated, repeated, torque).any()
     noisy = np.zeros_like(repeated)  # the same positions, a speed reading that changed (blocked)
     assert not evaluator._rigid_witness(speeds, repeated, noisy, torque).any()
     alone = np.array([[True, False, False]])
