@@ -1072,9 +1072,12 @@ class ResidualEvaluator:
         frozen = run_lengths(unchanged, self._frozen, restart)
         effort_frozen = run_lengths(unchanged & (torque == prev_torque), self._effort_frozen, restart)
         encoder_u = self.bound('encoder', encoder_f)
-        stopped = repeated & self._moving(mean_speed, p.commanded, p.velocity_mode[:, None], step,
-                                          encoder_u,
-                                          self._rigid_witness(mean_speed, repeated, unchanged, torque))
+        velocity_mode = p.velocity_mode[:, None]
+        # the witness serves current mode only (velocity mode's is the command): not computed
+        # for a velocity-mode row, whose _moving ignores it
+        witnessed = self._rigid_witness(mean_speed, repeated, unchanged & ~velocity_mode, torque)
+        stopped = repeated & self._moving(mean_speed, p.commanded, velocity_mode, step, encoder_u,
+                                          witnessed)
         position_frozen = run_lengths(stopped, self._position_frozen, restart)
 
         self._last = (stamp[-1], position[-1], velocity[-1], torque[-1])
