@@ -314,10 +314,11 @@ def test_a_second_wheel_failing_later_is_not_shared_with_the_first(tmp_path, mod
 def test_the_load_factor_is_the_part_every_wheel_shares(model):
     generator = ResidualGenerator(model, FdiSettings(torque_sigma=0.01))
     friction = np.array([0.2, 0.2, 0.2, 0.2])
-    both = np.concatenate([[1.5, 1.3, 1.4, 1.6] * friction, friction])[None]
-    assert float(generator.observer._load_factor(both, 1.0)[0][0]) == pytest.approx(1.45)  # the median
-    one = np.concatenate([[2.0, 1.0, 1.0, 1.0] * friction, friction])[None]
-    assert float(generator.observer._load_factor(one, 1.0)[0][0]) == pytest.approx(1.0)  # one wheel: a fault
+    shares = np.ones((1, 4))  # all Coulomb
+    both = np.concatenate([[1.5, 1.3, 1.4, 1.6] * friction, friction, 0.0 * friction])[None]
+    assert float(generator.observer._load_factor(both, 1.0, shares)[0][0]) == pytest.approx(1.45)  # the median
+    one = np.concatenate([[2.0, 1.0, 1.0, 1.0] * friction, friction, 0.0 * friction])[None]
+    assert float(generator.observer._load_factor(one, 1.0, shares)[0][0]) == pytest.approx(1.0)  # one wheel: a fault
 
 
 # ---------------------------------------------------------------------- the real recordings

@@ -94,8 +94,8 @@ def test_the_load_factor_follows_a_platform_change_of_any_size(model):
 
     def factor(ratios, previous=1.0, voting=(True,) * 4):
         votes = np.where(voting, friction, 0.0)
-        row = np.concatenate([np.array(ratios) * votes, votes])[None]
-        return float(observer._load_factor(row, previous)[0][0])
+        row = np.concatenate([np.array(ratios) * votes, votes, 0.0 * votes])[None]  # all Coulomb
+        return float(observer._load_factor(row, previous, np.ones((1, 4)))[0][0])
 
     assert factor([3.2, 3.0, 3.4, 3.1]) == pytest.approx(3.15)
     assert factor([5.0, 1.0, 1.0, 1.0]) == pytest.approx(1.0)
@@ -112,15 +112,16 @@ def test_two_voters_move_the_load_factor_as_far_as_both_agree(model):
 
     def factor(ratios, previous):
         return float(observer._load_factor(
-            np.concatenate([np.array(ratios + [0.0, 0.0]) * friction, friction])[None], previous)[0][0])
+            np.concatenate([np.array(ratios + [0.0, 0.0]) * friction, friction, 0.0 * friction])[None],
+            previous, np.ones((1, 4)))[0][0])
 
     assert factor([2.1, 1.8], 1.0) == pytest.approx(1.8)  # both: the smaller change
     assert factor([0.6, 0.7], 1.0) == pytest.approx(0.7)
     assert factor([5.0, 1.05], 1.0) == pytest.approx(1.05)  # one wheel's fault: the other's
     assert factor([5.0, 0.95], 1.0) == pytest.approx(1.0)  # either side of the last: held
     assert factor([0.3, 1.0], 1.7) == pytest.approx(1.0)
-    one = np.concatenate([[0.6, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])[None]  # one voter at x3
-    assert float(observer._load_factor(one, 1.7)[0][0]) == pytest.approx(1.7)  # held
+    one = np.concatenate([[0.6, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0], np.zeros(4)])[None]  # one voter at x3
+    assert float(observer._load_factor(one, 1.7, np.ones((1, 4)))[0][0]) == pytest.approx(1.7)  # held
 
 
 def test_the_load_spread_is_how_far_the_other_wheels_stand_from_the_factor():
@@ -139,6 +140,51 @@ def test_the_load_spread_is_how_far_the_other_wheels_stand_from_the_factor():
                          [0.0, 0.0, 0.0, 0.0]])
     np.testing.assert_allclose(load_spread(ratio, factor), expected, atol=1e-12)
     np.testing.assert_allclose(load_spread(ratio[:1], factor[:1]), expected[:1], atol=1e-12)  # a live row
+
+
+def test_a_shared_change_is_the_coulomb_parts_so_a_wheel_split_otherwise_may_stand_off_it():
+    """Closed forms of split_spread: voters whose friction was a quarter Coulomb read a factor of
+    2, so their Coulomb part rose fivefold (1 + 1 / 0.25), the viscous part the same: a wheel
+    with three quarters more Coulomb share than any of them may stand 0.75 x 4 = 3 off the
+    factor. A factor below 1 past what the Coulomb part alone can give (0.69 from a fifth: the
+    Coulomb part at 0, the viscous at 0.69 / 0.8) gives |0 - 0.8625| per unit share. No change,
+    no share beyond the others', or an unknown share: nothing; voters without a Coulomb part
+    cannot tell its rise: nothing either (no bound without end)."""
+    from youbot_fdi.fdi.observer import split_spread
+    factor = np.array([2.0, 0.69, 1.0, 2.0, 1.5])
+    voters = np.array([0.25, 0.2, 0.25, 0.25, 0.0])
+    beyond = np.array([[0.75, 0.0], [0.8, 0.5], [0.75, 0.0], [np.nan, 0.5], [0.5, 0.0]])
+    expected = np.array([[3.0, 0.0], [0.69, 0.43125], [0.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
+    np.testing.assert_allclose(split_spread(factor, voters, beyond), expected, rtol=1e-12)
+    np.testing.assert_allclose(split_spread(factor[:1], voters[:1], beyond[:1]), expected[:1])  # a live row
+
+
+def test_a_wheels_share_beyond_the_others_is_its_distance_outside_their_span():
+    """Per wheel, how far its Coulomb share now stands outside the other voting wheels' shares:
+    0 inside their span, where no other wheel votes, or where its own share is unknown."""
+    from youbot_fdi.fdi.observer import beyond_the_others, coulomb_share
+    nan = np.nan
+    shares = np.array([[0.2, 0.3, 0.25, nan], [0.5, nan, nan, nan]])
+    share = np.array([[0.9, 0.1, 0.25, 0.35], [0.9, 0.1, nan, 0.5]])
+    expected = np.array([[0.6, 0.1, 0.0, 0.05], [0.0, 0.4, 0.0, 0.0]])
+    np.testing.assert_allclose(beyond_the_others(shares, share), expected, atol=1e-12)
+    np.testing.assert_allclose(coulomb_share(np.array([0.15, 0.3, 0.1, -0.1]), np.array([0.2, 0.2, 0.0, 0.2])),
+                               [0.25, 0.0, nan, 1.0])
+
+
+def test_a_slow_wheel_beside_fast_ones_on_a_new_floor_may_need_more_than_the_factor(model):
+    """The observer's load spread of a wheel (``_load_factor``) is the larger of the other
+    voters' spread and the split: three fast wheels, a quarter Coulomb, read 2 (their Coulomb
+    part fivefold); a fourth wheel standing still votes not, and creeping now (all Coulomb) may
+    stand 0.75 x 4 = 3 off; at the fast wheels' share it may stand only as far as they do."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    observer = ModelObserver(model, FdiSettings())
+    friction = np.array([0.2, 0.2, 0.2, 0.0])
+    row = np.concatenate([2.0 * friction, friction, 0.75 * friction])[None]
+    _, spread = observer._load_factor(row, 1.0, np.array([[0.25, 0.25, 0.25, 1.0]]))
+    np.testing.assert_allclose(spread, [[0.0, 0.0, 0.0, 3.0]], atol=1e-12)
+    _, spread = observer._load_factor(row, 1.0, np.full((1, 4), 0.25))
+    np.testing.assert_allclose(spread, [[0.0, 0.0, 0.0, 0.0]], atol=1e-12)
 
 
 def test_the_torque_bound_allows_the_larger_of_the_configured_share_and_the_spread(model):

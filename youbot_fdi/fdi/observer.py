@@ -23,8 +23,9 @@ Inputs are what the robot publishes (CONTRACT.md, driver convention): /joint_sta
 ``load_factor``
     the platform-wide friction/load condition (1: as identified), slow and bounded.
 ``load_spread``
-    how far the other wheels' own load ratios stand from that shared factor, per wheel (the
-    median over them) [-]: how far one factor describes the wheels beside it.
+    how far a wheel's load ratio may stand from that shared factor [-]: the larger of how far the
+    other wheels' own ratios stand from it (the median over them) and how far the wheel's friction
+    splits otherwise than theirs (:func:`split_spread`).
 
 The residual generator (:class:`~youbot_fdi.fdi.residuals.ResidualEvaluator`) turns a sample and
 its prediction into residuals; :class:`~youbot_fdi.fdi.residuals.ResidualGenerator` runs both.
@@ -151,6 +152,50 @@ def load_spread(ratio: np.ndarray, factor: np.ndarray) -> np.ndarray:
     deviation = np.abs(ratio - np.asarray(factor, dtype=float)[..., None])
     spread = nan_median(deviation[..., other_wheels(n)])
     return np.where(np.isnan(spread), 0.0, spread)
+
+
+def coulomb_share(viscous: np.ndarray, friction: np.ndarray) -> np.ndarray:
+    """The Coulomb part's share (...) [0..1] of a friction level ``friction`` [N·m] whose viscous
+    part is ``viscous`` [N·m]; NaN where the level is 0 (no share to speak of)."""
+    ratio = np.full(np.shape(friction), np.nan)
+    np.divide(viscous, friction, out=ratio, where=friction != 0.0)
+    return np.minimum(np.maximum(1.0 - ratio, 0.0), 1.0)
+
+
+def beyond_the_others(shares: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """How far (N, n) each wheel's ``share`` (N, n) stands outside the span of the *other*
+    wheels' ``shares`` (N, n) (NaN: not known); 0 inside it, where it is unknown or no other
+    wheel's is known."""
+    others = shares[..., other_wheels(shares.shape[-1])]
+    with np.errstate(invalid='ignore'):  # no other share known: NaN, nothing beyond
+        beyond = np.maximum(np.fmin.reduce(others, axis=-1) - share,
+                            share - np.fmax.reduce(others, axis=-1))
+    return np.where(beyond > 0.0, beyond, 0.0)
+
+
+def split_spread(factor: np.ndarray, voters_share: np.ndarray, beyond: np.ndarray) -> np.ndarray:
+    """How far (N, n) [-] a wheel's load ratio may stand off the shared ``factor`` (N,) [-]
+    because its friction splits otherwise than the voters' did.
+
+    Why: what the wheels share (a floor's rolling resistance, a payload's normal forces, a slope)
+    acts through the contact forces, which do not grow with speed: the Coulomb part of friction,
+    not the viscous. The voters' friction had the Coulomb share ``voters_share`` (N,) [0..1], so
+    their factor says the Coulomb part changed by ``Lc = 1 + (factor - 1) / voters_share`` (at
+    least 0, friction dissipates; the viscous part takes the rest where it would go below, else
+    it stays at 1). A wheel's ratio then moves by ``|Lc - Lv|`` per unit of Coulomb share it has
+    beyond the others' (``beyond`` (N, n) [0..1], :func:`beyond_the_others`; within their span
+    their own spread about the factor, :func:`load_spread`, says how far): a slow wheel, nearly
+    all Coulomb, beside fast ones on a new floor needs more than the factor says. 0 where nothing
+    is beyond, and where the voters had no Coulomb part and the factor rose: they cannot say how
+    far it changed, and a bound without end would judge nothing (the wheel keeps the others'
+    spread)."""
+    factor, voters = (np.asarray(a, dtype=float)[..., None] for a in (factor, voters_share))
+    with np.errstate(invalid='ignore', divide='ignore'):
+        coulomb = np.maximum(0.0, 1.0 + (factor - 1.0) / voters)
+        viscous = (factor - coulomb * voters) / (1.0 - voters)  # 1 unless ``coulomb`` reached 0
+        gap = np.abs(coulomb - np.where(np.isfinite(viscous), viscous, 1.0))
+        apart = beyond * gap
+    return np.where(np.isfinite(apart), apart, 0.0)
 
 
 @functools.cache
@@ -396,8 +441,9 @@ class ModelObserver:
         self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
         self._commands_sorted = True  # _known_commands in stamp order (command() tells)
         self.signed_effort = drive.signed_effort
-        #: smoothed [load part; friction torque] per wheel, and the load factor; it outlives gaps
-        self._load = (np.zeros(2 * self.n), 1.0)
+        #: smoothed [load part; friction torque; its viscous part] per wheel, and the load
+        #: factor; it outlives gaps
+        self._load = (np.zeros(3 * self.n), 1.0)
         #: smoothed [drag part; glide share] per wheel and the shared drag [N·m]; outlives gaps
         self._drag = (np.zeros(2 * self.n), 0.0)
         #: the shared drag is measured: asked for, and mecanum rollers (omni wheels: no pattern)
@@ -770,8 +816,9 @@ class ModelObserver:
             explained = explained + learned_inertia
         return ExplainedTorque(explained + coulomb, friction, coulomb, unseen, outside)
 
-    def _load_votes(self, mean_torque, explained, friction):
-        """Per wheel, (load part: measured minus inertial torque, friction level), zero where the
+    def _load_votes(self, mean_torque, explained, friction, viscous):
+        """Per wheel, (load part: measured minus inertial torque, friction level, its viscous
+        part ``viscous``), zero where the
         wheel does not vote on the load factor (friction level under the torque floor or under
         the inertial torque, effort unknown). With the contact law the "inertial" part is the
         explained torque less the friction level, so the load part is the level plus what the
@@ -781,11 +828,13 @@ class ModelObserver:
         # Only in near-steady driving: where inertia dominates, the model's error does too.
         votes = ((np.abs(friction) >= self.settings.torque_sigma) & (np.abs(inertial) <= np.abs(friction))
                  & np.isfinite(load_part))
-        return np.where(votes, load_part, 0.0), np.where(votes, friction, 0.0)
+        return (np.where(votes, load_part, 0.0), np.where(votes, friction, 0.0),
+                np.where(votes, viscous, 0.0))
 
-    def _load_factor(self, smoothed, previous):
-        """The platform-wide load factor (N,) and each wheel's load spread (N, n)
-        (:func:`load_spread`) from the smoothed (load part; friction) (N, 2n). The factor is the
+    def _load_factor(self, smoothed, previous, share):
+        """The platform-wide load factor (N,) and each wheel's load spread (N, n) from the
+        smoothed (load part; friction; its viscous part) (N, 3n), the wheels' Coulomb shares
+        ``share`` (N, n) now (the larger of :func:`load_spread` and :func:`split_spread`). The factor is the
         median of the voting wheels' ratios, at any size (a floor or payload three times the
         calibration's is shared as much as one ten percent off). A median of at least
         ``MIN_LOAD_VOTES`` wheels is moved by no single wheel (a fault stays that wheel's), and
@@ -793,12 +842,14 @@ class ModelObserver:
         triples the rolling wheels' friction and leaves a sliding one's); with two voters, as far
         as both agree (:func:`shared_ratio`), from ``previous``."""
         n = self.n
-        load, friction = smoothed[..., :n], smoothed[..., n:]
+        load, friction, viscous = smoothed[..., :n], smoothed[..., n:2 * n], smoothed[..., 2 * n:]
         votes = np.abs(friction) >= self.settings.torque_sigma
         ratio = np.where(votes, load / np.where(votes, friction, 1.0), np.nan)
         # Friction dissipates: it never turns a wheel for its motor, so the factor is not negative.
         factor = shared_ratio(ratio, previous, 0.0)
-        return factor, load_spread(ratio, factor)
+        shares = np.where(votes, coulomb_share(viscous, friction), np.nan)
+        split = split_spread(factor, nan_median(shares), beyond_the_others(shares, share))
+        return factor, np.maximum(load_spread(ratio, factor), split)
 
     def _shared_drag(self, velocity, mean_speed, residual, inertial, friction, keep):
         """The torque [N·m] (N, n) of the rollers' drag the floor adds beyond the model's: its
@@ -903,9 +954,10 @@ class ModelObserver:
         prev_torque = shifted(last_torque, torque)
         mean_torque = 0.5 * (torque + prev_torque)
         keep = self._smoothing(dt)
+        viscous = self.friction * (0.5 * (velocity + prev_velocity))
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
-            self._load_votes(mean_torque, explained, friction), axis=1), self._load[0])
-        load, spread = self._load_factor(smoothed, self._load[1])
+            self._load_votes(mean_torque, explained, friction, viscous), axis=1), self._load[0])
+        load, spread = self._load_factor(smoothed, self._load[1], coulomb_share(viscous, friction))
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
         if self._measures_drag:
             drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),
