@@ -384,6 +384,7 @@ class ExplainedTorque(NamedTuple):
 
     explained: np.ndarray  # the torque the dynamics need for the measured speed change
     friction: np.ndarray  # the friction level: viscous plus the Coulomb level
+    viscous: np.ndarray  # the friction level's viscous part
     coulomb: np.ndarray  # the Coulomb torque (with the learned correction's friction part)
     unseen: np.ndarray  # friction the model cannot see (contact-law share, speed extrapolation)
     outside: np.ndarray  # wheels outside the learned correction's calibration (bit mask)
@@ -803,7 +804,8 @@ class ModelObserver:
         without the contact law's share), the unseen friction as :meth:`_coulomb` gives it."""
         mean_speed = 0.5 * (velocity + prev_velocity)
         coulomb, level, unseen = self._coulomb(mean_speed)
-        friction = self.friction * mean_speed + level
+        viscous = self.friction * mean_speed
+        friction = viscous + level
         unseen = unseen + self._speed_extrapolation(mean_speed)
         explained = matvec(gamma_inv, velocity - matvec(phi, prev_velocity))
         outside = np.zeros(np.shape(velocity)[:-1])
@@ -814,7 +816,7 @@ class ModelObserver:
             outside = wheel_mask(seen)
             coulomb = coulomb + learned_friction
             explained = explained + learned_inertia
-        return ExplainedTorque(explained + coulomb, friction, coulomb, unseen, outside)
+        return ExplainedTorque(explained + coulomb, friction, viscous, coulomb, unseen, outside)
 
     def _load_votes(self, mean_torque, explained, friction, viscous):
         """Per wheel, (load part: measured minus inertial torque, friction level, its viscous
@@ -945,7 +947,7 @@ class ModelObserver:
         dt = np.where(restart, self.period, dt)  # rows that restart need any valid step
         phi, gamma, gamma_inv = self._discrete_rows(dt)
         step = dt[:, None]
-        explained, friction, coulomb, unseen, outside = self._explained(
+        explained, friction, viscous, coulomb, unseen, outside = self._explained(
             velocity, prev_velocity, phi, gamma_inv, step, torque,
             shifted(last_torque, torque))
         torque = signed_torque(torque, explained, self.signed_effort)
@@ -954,10 +956,10 @@ class ModelObserver:
         prev_torque = shifted(last_torque, torque)
         mean_torque = 0.5 * (torque + prev_torque)
         keep = self._smoothing(dt)
-        viscous = self.friction * (0.5 * (velocity + prev_velocity))
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
             self._load_votes(mean_torque, explained, friction, viscous), axis=1), self._load[0])
-        load, spread = self._load_factor(smoothed, self._load[1], coulomb_share(viscous, friction))
+        load, spread = self._load_factor(smoothed, self._load[1],
+                                         coulomb_share(viscous, friction))
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
         if self._measures_drag:
             drag = self._shared_drag(velocity, 0.5 * (velocity + prev_velocity),

@@ -879,8 +879,8 @@ class ResidualEvaluator:
         randomized suite's last false alarm: a hard turn at 50 Hz, one wheel from 8.6 to -1.5
         rad/s and another from 8.6 to -10.8 in 0.15 s, its residual standing at 2.5-3.3 bounds
         for 60 ms after the bound had collapsed); a blocked wheel moves away from its command
-        (velocity mode; current mode has no commanded speed to tell them apart). A base of three wheels always fits a motion:
-        its speeds cannot tell a manoeuvre from a fault, so nothing is remembered there (the
+        (velocity mode; current mode has no commanded speed to tell them apart). A base of three
+        wheels always fits a motion: its speeds cannot tell a manoeuvre from a fault, so nothing is remembered there (the
         Robotino folds: remembered, a jammed wheel was found in 12 of 86 runs, 86 without)."""
         if beyond is None:
             return 0.0
@@ -888,8 +888,8 @@ class ResidualEvaluator:
         if idle is not None:  # nearly every row: the gate is not worked out
             self._torque_extrapolated = idle
             return 0.0
-        manoeuvre = np.where((self.fit_a_motion(velocity) | (followed & self.fit_no_motion(velocity)))[:, None],
-                             beyond, 0.0)
+        rows = self.fit_a_motion(velocity) | (followed & self.fit_no_motion(velocity))
+        manoeuvre = np.where(rows[:, None], beyond, 0.0)
         carried, self._torque_extrapolated = self._remembered(manoeuvre, stamp, restart,
                                                               self._torque_extrapolated)
         return np.maximum(0.0, carried + manoeuvre - beyond)  # the peak less the row's own
@@ -1106,10 +1106,9 @@ class ResidualEvaluator:
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
         # velocity-mode rows whose every wheel moves toward its command (its error not grown
-        # beyond the reading's noise): a slip there is the floor's, not a wheel's
-        with np.errstate(invalid='ignore'):  # NaN: not followed
-            grown = np.abs(velocity - p.commanded) - np.abs(prev_velocity - p.commanded)
-            followed = p.velocity_mode & (grown <= self._speed_uncertainty).all(axis=1)
+        # beyond the reading's noise; NaN: not followed): a slip there is the floor's
+        grown = np.abs(velocity - p.commanded) - np.abs(prev_velocity - p.commanded)
+        followed = p.velocity_mode & (grown <= self._speed_uncertainty).all(axis=1)
         torque_bound, torque_scale = self._torque_bounds(torque_f, torque_a, velocity, load, stamp,
                                                          restart, followed)
         slipping = self.slipping(velocity, stamp)
