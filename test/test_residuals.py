@@ -484,6 +484,28 @@ def test_the_torque_shift_allows_the_friction_of_a_speed_the_reading_cannot_reso
     assert first_shift_alarm(2.0) == pytest.approx(400 + samples - 1, abs=1)  # as above: +-1 row
 
 
+def test_a_row_follows_its_commands_where_every_wheel_moves_toward_its_command(model):
+    """Velocity mode, every wheel's error to its command smaller than at the sample before or
+    within 3 speed_sigma (0.03 rad/s here): a hard turn the wheels follow, one of them holding
+    its speed; not where one wheel moves away (blocked) or does not move while its command is
+    far (a frozen reading), where a reading is NaN, or in current mode."""
+    from youbot_fdi.fdi.residuals import ResidualEvaluator
+    evaluator = ResidualEvaluator(model, replace(FdiSettings(), speed_sigma=0.01))
+    commanded = np.tile([-1.5, -10.8, 5.0, 3.0], (6, 1))
+    before = np.tile([8.6, 8.6, 5.0, 3.0], (6, 1))
+    now = np.tile([5.0, 2.0, 5.02, 3.0], (6, 1))  # two wheels on their way, two holding
+    now[1, 2] = 5.1  # a holding wheel off by more than the noise, moving away
+    now[2, 0] = 8.6  # a reading that does not move (frozen) while its command is far
+    now[3, 1] = 9.0  # a wheel moving away from its command
+    now[4, 3] = np.nan
+    mode = np.array([True, True, True, True, True, False])
+    followed = evaluator.follow_commands(now, before, commanded, mode)
+    assert followed.tolist() == [True, False, False, False, False, False]
+    live = [evaluator.follow_commands(now[k:k + 1], before[k:k + 1], commanded[k:k + 1], mode[k:k + 1])[0]
+            for k in range(6)]
+    assert live == followed.tolist()
+
+
 def test_the_torque_shift_scale_keeps_what_a_manoeuvre_left_not_the_steady_allowances(model):
     """The torque bound is the learned part + the allowances + what a manoeuvre beyond
     calibration left (w X exp(-t / tau), as above); the shift's scale is the learned part + that

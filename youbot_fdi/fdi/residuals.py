@@ -525,6 +525,18 @@ class ResidualEvaluator:
             return np.zeros(len(velocity), dtype=bool)
         return ~self.fit_no_motion(velocity)
 
+    def follow_commands(self, velocity: np.ndarray, prev_velocity: np.ndarray, commanded: np.ndarray,
+                        velocity_mode: np.ndarray) -> np.ndarray:
+        """Rows (N,) in velocity mode (``velocity_mode`` (N,)) whose every wheel moves toward its
+        commanded speed ``commanded`` (N, n) [rad/s]: its error is smaller at ``velocity`` (N, n)
+        than at ``prev_velocity`` (N, n) [rad/s], or within three ``speed_sigma`` (the reading's
+        noise). A blocked wheel moves away from its command, a frozen reading not at all; NaN:
+        not followed. (:meth:`_remembered_torque_extrapolation`: a turn the wheels slip through
+        on command.)"""
+        error = np.abs(velocity - commanded)
+        toward = (error < np.abs(prev_velocity - commanded)) | (error <= self._speed_uncertainty)
+        return velocity_mode & toward.all(axis=-1)
+
     def shift_scale(self, learned_bound: np.ndarray, velocity: np.ndarray,
                     load: np.ndarray | float) -> np.ndarray:
         """The scale [N·m] (N, n) of each wheel's torque residual's shift from its recent level
@@ -1105,10 +1117,7 @@ class ResidualEvaluator:
                 self.beyond_calibration({'effort': effort_f}))
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
-        # velocity-mode rows whose every wheel moves toward its command (its error not grown
-        # beyond the reading's noise; NaN: not followed): a slip there is the floor's
-        grown = np.abs(velocity - p.commanded) - np.abs(prev_velocity - p.commanded)
-        followed = p.velocity_mode & (grown <= self._speed_uncertainty).all(axis=1)
+        followed = self.follow_commands(velocity, prev_velocity, p.commanded, p.velocity_mode)
         torque_bound, torque_scale = self._torque_bounds(torque_f, torque_a, velocity, load, stamp,
                                                          restart, followed)
         slipping = self.slipping(velocity, stamp)
