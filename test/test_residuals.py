@@ -336,27 +336,27 @@ def test_the_torque_bound_remembers_a_manoeuvre_beyond_calibration_not_a_wheel_a
     unfit[0] += 0.5 * null / np.abs(null).max()  # the row beyond the range fits no motion
     assert evaluator.fit_a_motion(motion).all() and evaluator.fit_a_motion(unfit).tolist() == [False] + [True] * (rows - 1)
     fresh = np.zeros(rows, dtype=bool)
-    added = evaluator._remembered_torque_extrapolation(beyond, motion, stamp, fresh, fresh)
+    added = evaluator._remembered_torque_extrapolation(beyond, motion, stamp, fresh, lambda: fresh)
     expected = np.zeros((rows, 4))
     expected[1:, 2] = weight * excess * np.exp(-(stamp[1:] - stamp[0]) / tau)
     np.testing.assert_allclose(added, expected, rtol=1e-9, atol=1e-12)
     one_by_one = ResidualEvaluator(model, settings)
     by_row = np.concatenate([one_by_one._remembered_torque_extrapolation(
-        beyond[k:k + 1], motion[k:k + 1], stamp[k:k + 1], fresh[k:k + 1], fresh[k:k + 1])
+        beyond[k:k + 1], motion[k:k + 1], stamp[k:k + 1], fresh[k:k + 1], lambda: fresh[:1])
         for k in range(rows)])
     np.testing.assert_array_equal(by_row, added)
     restart = fresh.copy()
     restart[4] = True
     after = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, motion, stamp,
-                                                                               restart, fresh)
+                                                                               restart, lambda: fresh)
     np.testing.assert_allclose(after[:4], expected[:4], rtol=1e-9, atol=1e-12)
     assert np.all(after[4:] == 0.0)
     alone = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, unfit, stamp,
-                                                                               fresh, fresh)
+                                                                               fresh, lambda: fresh)
     assert np.all(alone == 0.0)
     followed = np.ones(rows, dtype=bool)  # every wheel moving toward its command: a turn slipped through
     turned = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, unfit, stamp,
-                                                                                fresh, followed)
+                                                                                fresh, lambda: followed)
     np.testing.assert_allclose(turned, expected, rtol=1e-9, atol=1e-12)
     # no calibrated slip, or three wheels (which always fit a motion): no row shows a manoeuvre
     assert not ResidualEvaluator(model, replace(settings, calibrated_slip=math.inf)).fit_a_motion(motion).any()
@@ -519,7 +519,7 @@ def test_the_torque_shift_scale_keeps_what_a_manoeuvre_left_not_the_steady_allow
     motion = np.tile(model.kinematics.inverse(np.array([0.8, -0.5, 2.0])), (rows, 1))
     allowance, load = np.full((rows, 4), 0.3), np.full((rows, 1), 1.5)
     bound, scale = evaluator._torque_bounds(features, allowance, motion, load, stamp,
-                                            np.zeros(rows, dtype=bool), np.zeros(rows, dtype=bool))
+                                            np.zeros(rows, dtype=bool), lambda: np.zeros(rows, dtype=bool))
     within = 0.05 + 0.1 * 0.5 + 0.2 * 0.5  # sigma + the current change's and friction's terms
     remembered = np.zeros((rows, 4))
     remembered[0, 1] = weight * excess  # the row's own extrapolation

@@ -38,6 +38,7 @@ for a block of samples (the replay); ``update`` (the live nodes) is a batch of o
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -850,8 +851,8 @@ class ResidualEvaluator:
     def _torque_bounds(self, features, allowance, velocity, load, stamp, restart, followed):
         """The torque bound (N, n) [N·m] from its ``features`` (N, n, k) and ``allowance`` (N, n)
         [N·m], with what a manoeuvre beyond calibration left (:meth:`_remembered_torque_
-        extrapolation`; ``followed`` (N,): the rows whose wheels all move toward their commanded
-        speeds), and the scale of the residual's shift (:meth:`shift_scale`), at the
+        extrapolation`; ``followed()`` (N,): the rows whose wheels all move toward their commanded
+        speeds, asked for where needed), and the scale of the residual's shift (:meth:`shift_scale`), at the
         wheel speeds ``velocity`` (N, n) [rad/s] and load factor ``load`` (N, 1). Continues the
         state.
 
@@ -871,7 +872,7 @@ class ResidualEvaluator:
         which the base still remembers: the part of the torque bound beyond calibration's range
         (``beyond`` (N, n) [N·m], :meth:`bound_parts`; None: not calibrated) in the rows whose
         wheel speeds ``velocity`` (N, n) [rad/s] fit a rigid motion (:meth:`fit_a_motion`), or
-        fit none while every wheel moves toward its commanded speed (``followed`` (N,)), carried
+        fit none while every wheel moves toward its commanded speed (``followed()`` (N,)), carried
         as a peak that decays with the loop's slowest time constant, less the row's own
         (which the bound has). Continues (and leaves) the state.
 
@@ -890,17 +891,17 @@ class ResidualEvaluator:
         than the floor's traction gave it, and the wheels slip through it together (the
         randomized suite's last false alarm: a hard turn at 50 Hz, one wheel from 8.6 to -1.5
         rad/s and another from 8.6 to -10.8 in 0.15 s, its residual standing at 2.5-3.3 bounds
-        for 60 ms after the bound had collapsed); a blocked wheel moves away from its command
-        (velocity mode; current mode has no commanded speed to tell them apart). A base of three
-        wheels always fits a motion: its speeds cannot tell a manoeuvre from a fault, so nothing is remembered there (the
-        Robotino folds: remembered, a jammed wheel was found in 12 of 86 runs, 86 without)."""
+        for 60 ms after the bound had collapsed); a blocked wheel moves away from its command, a
+        frozen reading not at all (velocity mode; current mode has no commanded speed to tell
+        them apart). A base of three wheels always fits a motion: its speeds cannot tell a
+        manoeuvre from a fault, so nothing is remembered there (the Robotino folds: remembered, a jammed wheel was found in 12 of 86 runs, 86 without)."""
         if beyond is None:
             return 0.0
         idle = self._idle(beyond, stamp, restart, self._torque_extrapolated)
         if idle is not None:  # nearly every row: the gate is not worked out
             self._torque_extrapolated = idle
             return 0.0
-        rows = self.fit_a_motion(velocity) | (followed & self.fit_no_motion(velocity))
+        rows = self.fit_a_motion(velocity) | (followed() & self.fit_no_motion(velocity))
         manoeuvre = np.where(rows[:, None], beyond, 0.0)
         carried, self._torque_extrapolated = self._remembered(manoeuvre, stamp, restart,
                                                               self._torque_extrapolated)
@@ -1117,7 +1118,9 @@ class ResidualEvaluator:
                 self.beyond_calibration({'effort': effort_f}))
         outside = (p.outside_calibration.astype(np.int64)
                    | wheel_mask(~beyond).astype(np.int64)).astype(float)
-        followed = self.follow_commands(velocity, prev_velocity, p.commanded, p.velocity_mode)
+        # asked for only where a manoeuvre may be remembered (rarely: not worked out live)
+        followed = functools.partial(self.follow_commands, velocity, prev_velocity, p.commanded,
+                                     p.velocity_mode)
         torque_bound, torque_scale = self._torque_bounds(torque_f, torque_a, velocity, load, stamp,
                                                          restart, followed)
         slipping = self.slipping(velocity, stamp)
