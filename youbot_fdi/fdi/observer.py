@@ -167,9 +167,8 @@ def beyond_the_others(shares: np.ndarray, share: np.ndarray) -> np.ndarray:
     wheels' ``shares`` (N, n) (NaN: not known); 0 inside it, where it is unknown or no other
     wheel's is known."""
     others = shares[..., other_wheels(shares.shape[-1])]
-    with np.errstate(invalid='ignore'):  # no other share known: NaN, nothing beyond
-        beyond = np.maximum(np.fmin.reduce(others, axis=-1) - share,
-                            share - np.fmax.reduce(others, axis=-1))
+    beyond = np.maximum(np.fmin.reduce(others, axis=-1) - share,  # no other share known: NaN
+                        share - np.fmax.reduce(others, axis=-1))
     return np.where(beyond > 0.0, beyond, 0.0)
 
 
