@@ -819,11 +819,11 @@ class ModelObserver:
 
     def _load_votes(self, mean_torque, explained, friction, viscous):
         """Per wheel, (load part: measured minus inertial torque, friction level, its viscous
-        part ``viscous``), zero where the
-        wheel does not vote on the load factor (friction level under the torque floor or under
-        the inertial torque, effort unknown). With the contact law the "inertial" part is the
-        explained torque less the friction level, so the load part is the level plus what the
-        model does not explain: its ratio to the level is 1 on the calibrated floor."""
+        part ``viscous``), zero where the wheel does not vote on the load factor (friction level
+        under the torque floor or under the inertial torque, effort unknown). With the contact
+        law the "inertial" part is the explained torque less the friction level, so the load
+        part is the level plus what the model does not explain: its ratio to the level is 1 on
+        the calibrated floor."""
         inertial = explained - friction
         load_part = mean_torque - inertial
         # Only in near-steady driving: where inertia dominates, the model's error does too.
@@ -833,10 +833,10 @@ class ModelObserver:
                 np.where(votes, viscous, 0.0))
 
     def _load_factor(self, smoothed, previous, share):
-        """The platform-wide load factor (N,) and each wheel's load spread (N, n) from the
-        smoothed (load part; friction; its viscous part) (N, 3n), the wheels' Coulomb shares
-        ``share`` (N, n) now (the larger of :func:`load_spread` and :func:`split_spread`). The factor is the
-        median of the voting wheels' ratios, at any size (a floor or payload three times the
+        """The platform-wide load factor (N,) and each wheel's load spread (N, n), the larger of
+        :func:`load_spread` and :func:`split_spread`, from the smoothed (load part; friction; its
+        viscous part) (N, 3n) and the wheels' Coulomb shares ``share`` (N, n) now. The factor is
+        the median of the voting wheels' ratios, at any size (a floor or payload three times the
         calibration's is shared as much as one ten percent off). A median of at least
         ``MIN_LOAD_VOTES`` wheels is moved by no single wheel (a fault stays that wheel's), and
         it follows what most wheels share where they do not all change alike (a floor that

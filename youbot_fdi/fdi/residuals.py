@@ -526,8 +526,8 @@ class ResidualEvaluator:
             return np.zeros(len(velocity), dtype=bool)
         return ~self.fit_no_motion(velocity)
 
-    def follow_commands(self, velocity: np.ndarray, prev_velocity: np.ndarray, commanded: np.ndarray,
-                        velocity_mode: np.ndarray) -> np.ndarray:
+    def follow_commands(self, velocity: np.ndarray, prev_velocity: np.ndarray,
+                        commanded: np.ndarray, velocity_mode: np.ndarray) -> np.ndarray:
         """Rows (N,) in velocity mode (``velocity_mode`` (N,)) whose every wheel moves toward its
         commanded speed ``commanded`` (N, n) [rad/s]: its error is smaller at ``velocity`` (N, n)
         than at ``prev_velocity`` (N, n) [rad/s], or within three ``speed_sigma`` (the reading's
@@ -852,8 +852,8 @@ class ResidualEvaluator:
         """The torque bound (N, n) [N·m] from its ``features`` (N, n, k) and ``allowance`` (N, n)
         [N·m], with what a manoeuvre beyond calibration left (:meth:`_remembered_torque_
         extrapolation`; ``followed()`` (N,): the rows whose wheels all move toward their commanded
-        speeds, asked for where needed), and the scale of the residual's shift (:meth:`shift_scale`), at the
-        wheel speeds ``velocity`` (N, n) [rad/s] and load factor ``load`` (N, 1). Continues the
+        speeds, asked for where needed), and the scale of the residual's shift
+        (:meth:`shift_scale`), at the wheel speeds ``velocity`` (N, n) [rad/s] and load factor ``load`` (N, 1). Continues the
         state.
 
         The shift's scale leaves out the allowances for steady biases (they cancel in a departure
@@ -894,7 +894,8 @@ class ResidualEvaluator:
         for 60 ms after the bound had collapsed); a blocked wheel moves away from its command, a
         frozen reading not at all (velocity mode; current mode has no commanded speed to tell
         them apart). A base of three wheels always fits a motion: its speeds cannot tell a
-        manoeuvre from a fault, so nothing is remembered there (the Robotino folds: remembered, a jammed wheel was found in 12 of 86 runs, 86 without)."""
+        manoeuvre from a fault, so nothing is remembered there (the Robotino folds: remembered, a
+        jammed wheel was found in 12 of 86 runs, 86 without)."""
         if beyond is None:
             return 0.0
         idle = self._idle(beyond, stamp, restart, self._torque_extrapolated)
