@@ -98,16 +98,27 @@ def test_the_command_bound_remembers_a_transient_as_the_loop_does(model):
     assert np.all(mixed[2:] == 0.0)
 
 
+def _pushing_away(evaluator, velocity, torque, target, latest, mode, restart, step=0.01):
+    """``_excess_pushing_away`` over rows of one interval ``step`` [s], each row's sample before
+    being the row above (the first's: itself)."""
+    previous = np.vstack([velocity[:1], velocity[:-1]])
+    return evaluator._excess_pushing_away(velocity, previous, torque, target, latest, mode, restart,
+                                          np.full((len(velocity), 1), step))
+
+
 def test_a_current_that_rises_pushing_away_from_the_command_is_no_live_loop(model):
-    """A PI loop's output changes by k_p de/dt + k_i e: while its current pushes a wheel away from
-    its command (beyond three torque_sigma, the error beyond three speed_sigma, the error to the
-    latest command sent of the same sign) and the error does not shrink, that current can only
-    fall, whatever the gains and the limit. What it rose since the stretch began is counted
-    (0 where it fell, where the error shrank, where the current pushes toward the command, where
-    the latest command lies the other way, in current mode, after a restart, with
-    ``loop_direction`` off); the same row by row."""
+    """A PI loop's output changes by k_p (e - e_0) + k_i (the error summed): while its current
+    pushes a wheel away from its command (beyond three torque_sigma, the error beyond three
+    speed_sigma, the error to the latest command sent of the same sign) and the error does not
+    shrink, that current can only fall, by at least k_p k_t times the error's growth (not past
+    zero). What it stands above that since the stretch began is counted (0 where it fell enough,
+    where the error shrank, where the current pushes toward the command, where the latest
+    command lies the other way, in current mode, after a restart, with ``loop_direction`` off);
+    the same row by row. Here the speed stands still (no lag to allow)."""
     sigma = 0.05  # [N·m]; three of it: 0.15
     evaluator = ResidualEvaluator(model, replace(FdiSettings(), torque_sigma=sigma, speed_sigma=0.02))
+    stiffness = evaluator.loop_stiffness  # [N·m per rad/s]
+    assert stiffness == pytest.approx(model.firmware.velocity_kp * model.drive.torque_per_amp)
     rows = 6
     velocity = np.tile([2.0, 2.0, 2.0, 2.0], (rows, 1))
     velocity[:, 2] = 2.0 - 0.1 * np.arange(rows)  # wheel 2 nears its command (0)
@@ -120,45 +131,80 @@ def test_a_current_that_rises_pushing_away_from_the_command_is_no_live_loop(mode
                               [0.3, 0.35, 0.4, 0.45, 0.5, 0.55],   # rises, but the error shrinks
                               np.full(rows, -0.4)])                # pushes toward the command
     mode, fresh = np.ones(rows, dtype=bool), np.zeros(rows, dtype=bool)
-    rise = evaluator._rise_pushing_away(velocity, torque, target, latest, mode, fresh)
+    excess = _pushing_away(evaluator, velocity, torque, target, latest, mode, fresh)
     expected = np.zeros((rows, 4))
-    # from 0.3 at the start; row 3 is no stretch (the latest command lies beyond the speed), so
-    # row 4 starts a new one at 0.5
-    expected[:, 0] = [0.0, 0.05, 0.1, 0.0, 0.0, 0.1]
-    np.testing.assert_allclose(rise, expected, atol=1e-12)
+    # from 0.3 at the start; row 2's error grew by 0.5 rad/s, so a live loop's current had
+    # fallen by min(0.5 k_p k_t, 0.3); row 3 is no stretch (the latest command lies beyond the
+    # speed), so row 4 starts a new one at 0.5 (error 3), which row 5 (error 3) rose 0.1 above
+    expected[:, 0] = [0.0, 0.05, 0.1 + min(0.5 * stiffness, 0.3), 0.0, 0.0, 0.1]
+    np.testing.assert_allclose(excess, expected, atol=1e-12)
     one_by_one = ResidualEvaluator(model, evaluator.settings)
-    by_row = np.concatenate([one_by_one._rise_pushing_away(
-        velocity[k:k + 1], torque[k:k + 1], target[k:k + 1], latest[k:k + 1], mode[k:k + 1],
-        fresh[k:k + 1]) for k in range(rows)])
-    np.testing.assert_array_equal(by_row, rise)
+    by_row = np.concatenate([one_by_one._excess_pushing_away(
+        velocity[k:k + 1], velocity[max(k - 1, 0):max(k - 1, 0) + 1], torque[k:k + 1],
+        target[k:k + 1], latest[k:k + 1], mode[k:k + 1], fresh[k:k + 1], np.full((1, 1), 0.01))
+        for k in range(rows)])
+    np.testing.assert_array_equal(by_row, excess)
     restart = fresh.copy()
-    restart[1] = True  # the stretch starts again at row 2 (0.4)
-    again = ResidualEvaluator(model, evaluator.settings)._rise_pushing_away(
-        velocity, torque, target, latest, mode, restart)
+    restart[1] = True  # the stretch starts again at row 2 (0.4, error 2.5)
+    again = _pushing_away(ResidualEvaluator(model, evaluator.settings), velocity, torque, target,
+                          latest, mode, restart)
     np.testing.assert_allclose(again[:, 0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.1], atol=1e-12)
     current_mode = mode.copy()
     current_mode[:2] = False
-    mixed = ResidualEvaluator(model, evaluator.settings)._rise_pushing_away(
-        velocity, torque, target, latest, current_mode, fresh)
+    mixed = _pushing_away(ResidualEvaluator(model, evaluator.settings), velocity, torque, target,
+                          latest, current_mode, fresh)
     np.testing.assert_allclose(mixed[:, 0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.1], atol=1e-12)
     unsigned = ResidualEvaluator(model, evaluator.settings)
     unsigned.signed_effort = False  # a magnitude has no direction to judge
-    assert np.all(unsigned._rise_pushing_away(velocity, torque, target, latest, mode, fresh) == 0.0)
+    assert np.all(_pushing_away(unsigned, velocity, torque, target, latest, mode, fresh) == 0.0)
     off = ResidualEvaluator(model, replace(evaluator.settings, loop_direction=False))  # identify's runs
-    assert np.all(off._rise_pushing_away(velocity, torque, target, latest, mode, fresh) == 0.0)
-    # judged as the command residual: the speed error, scored rise / (3 sqrt(2) sigma), where
+    assert np.all(_pushing_away(off, velocity, torque, target, latest, mode, fresh) == 0.0)
+    # judged as the command residual: the speed error, scored excess / (3 sqrt(2) sigma), where
     # that is more than the path's own score, and wherever the path is not judged (settling)
     residual, bound = np.full((rows, 4), 0.3), np.full((rows, 4), 1.0)  # the path's: 0.3
     settling = np.zeros((rows, 4), dtype=bool)
     settling[1, 0] = True
     error = velocity - target
-    judged_r, judged_u = evaluator._judge_loop_direction(residual, bound, settling, error, rise)
-    noise = 3.0 * math.sqrt(2.0) * sigma  # 0.212 N·m: rows 2 and 5 (0.1) score 0.47, row 1 0.24
+    judged_r, judged_u = evaluator._judge_loop_direction(residual, bound, settling, error, excess)
+    noise = 3.0 * math.sqrt(2.0) * sigma  # 0.212 N·m: row 5 (0.1) scores 0.47, row 1 0.24
     picked = np.zeros((rows, 4), dtype=bool)
     picked[[1, 2, 5], 0] = True  # row 1 scores below the path, but the path is not judged there
     np.testing.assert_allclose(np.abs(judged_r) / judged_u,
-                               np.where(picked, rise / noise, 0.3), rtol=1e-12)
+                               np.where(picked, excess / noise, 0.3), rtol=1e-12)
     np.testing.assert_array_equal(judged_r, np.where(picked, error, residual))
+
+
+def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the_lag(model):
+    """Where the error to the command grew by d since a wheel began pushing away, a live loop's
+    current has fallen by k_p k_t d (not past zero); the host's reading may trail the firmware's
+    by the input delay tau, so tau times the reading's rate of change at both ends comes off d
+    first, and an unknown rate takes no growth. Closed forms over 5 rows of 10 ms, tau 40 ms:
+    the error grows 2.0, 2.2, 2.4, 2.4, 2.4 rad/s (rates 0, 20, 20, 0, 0 rad/s^2)."""
+    lag, step = 0.04, 0.01  # [s]
+    evaluator = ResidualEvaluator(model, replace(FdiSettings(), torque_sigma=0.05, speed_sigma=0.02,
+                                                 input_delay=lag))
+    stiffness = evaluator.loop_stiffness  # 0.76 N·m per rad/s
+    rows = 5
+    distance = np.array([2.0, 2.2, 2.4, 2.4, 2.4])
+    velocity = np.tile(distance[:, None], (1, 4))  # every command 0: the error is the speed
+    target = latest = np.zeros((rows, 4))
+    live = 1.0 - stiffness * (distance - 2.0)  # [N·m] a live loop's current, from 1 N·m
+    # pushing away: the error (command less speed) is negative, the torques positive
+    torque = np.column_stack([live, np.ones(rows), np.ones(rows), [0.1, 1.0, 1.0, 1.0, 1.0]])
+    previous = np.vstack([velocity[:1], velocity[:-1]])
+    previous[3, 2] = np.nan  # wheel 2: its rate unknown in row 3
+    mode, fresh = np.ones(rows, dtype=bool), np.zeros(rows, dtype=bool)
+    excess = evaluator._excess_pushing_away(velocity, previous, torque, target, latest, mode,
+                                            fresh, np.full((rows, 1), step))
+    held = min(stiffness * 0.4, 1.0)  # rows 3-4: grown 0.4 - tau (0 + 0); rows 1-2 grow nothing
+    np.testing.assert_allclose(excess[:, 0], 0.0, atol=1e-12)  # a live loop: nothing
+    # a current held at 1 N·m (a runaway): rows 1 and 2 grew 0.2 and 0.4 rad/s in the reading,
+    # less 0.04 s x 20 rad/s^2 = 0.8 rad/s the reading may have trailed by
+    np.testing.assert_allclose(excess[:, 1], [0.0, 0.0, 0.0, held, held], atol=1e-12)
+    np.testing.assert_allclose(excess[:, 2], [0.0, 0.0, 0.0, 0.0, held], atol=1e-12)
+    # wheel 3 begins at row 1 (0.1 N·m is within three torque_sigma): from 2.2 rad/s at 20
+    # rad/s^2, rows 3-4 grew 0.2 - 0.04 x 20 < 0
+    np.testing.assert_allclose(excess[:, 3], 0.0, atol=1e-12)
 
 
 def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):

@@ -147,7 +147,7 @@ class FdiSettings:
     # model is fitted to, and what the physics misses there is for the learned corrections
     shared_drag: bool = True
     # the loop's direction judged where the command path is not (ResidualEvaluator.
-    # _rise_pushing_away); identify runs without it: the command bound it fits is the path's
+    # _excess_pushing_away); identify runs without it: the command bound it fits is the path's
     loop_direction: bool = True
     classification_window: float = 0.5  # data used to name the fault type [s]
     # the event lifecycle (youbot_fdi/fdi/lifecycle.py): an alarm is published once it stood
