@@ -178,7 +178,8 @@ def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the
     """Where the error to the command grew by d since a wheel began pushing away, a live loop's
     current has fallen by k_p k_t d (not past zero); the host's reading may trail the firmware's
     by the input delay tau, so tau times the reading's rate of change at both ends comes off d
-    first, and an unknown rate takes no growth. Closed forms over 5 rows of 10 ms, tau 40 ms:
+    first, an unknown rate takes no growth, and a torque at the current limit is asked no fall
+    (a saturated output may hold there). Closed forms over 5 rows of 10 ms, tau 40 ms:
     the error grows 2.0, 2.2, 2.4, 2.4, 2.4 rad/s (rates 0, 20, 20, 0, 0 rad/s^2)."""
     lag, step = 0.04, 0.01  # [s]
     evaluator = ResidualEvaluator(model, replace(FdiSettings(), torque_sigma=0.05, speed_sigma=0.02,
@@ -205,6 +206,13 @@ def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the
     # wheel 3 begins at row 1 (0.1 N·m is within three torque_sigma): from 2.2 rad/s at 20
     # rad/s^2, rows 3-4 grew 0.2 - 0.04 x 20 < 0
     np.testing.assert_allclose(excess[:, 3], 0.0, atol=1e-12)
+    # a torque at the current limit is asked no fall: a saturated output may hold there
+    saturated = torque.copy()
+    saturated[:, 1] = model.drive.max_torque
+    at_limit = ResidualEvaluator(model, evaluator.settings)._excess_pushing_away(
+        velocity, previous, saturated, target, latest, mode, fresh, np.full((rows, 1), step))
+    np.testing.assert_allclose(at_limit[:, 1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(at_limit[:, 2], excess[:, 2], atol=1e-12)
 
 
 def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):

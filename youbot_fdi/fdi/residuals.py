@@ -429,6 +429,8 @@ class ResidualEvaluator:
         #: how long the speed reading may trail the firmware's own (the input delay ``identify``
         #: fits stands for every lag between a command and the reading) [s]
         self._reading_lag = max(0.0, settings.input_delay)
+        #: a torque measurably at the drive's current limit (within three ``torque_sigma``) [N·m]
+        self._at_limit = drive.max_torque - SPEED_NOISE_SIGMAS * settings.torque_sigma
         #: the command bound's transient the loop still remembers: (reference stamp [s], the
         #: log of its peak carried to it (n,), -inf: none) (:meth:`_remembered_transient`)
         self._transient = (0.0, np.full(self.n, -np.inf))
@@ -798,7 +800,11 @@ class ResidualEvaluator:
         its rate of change at both ends times that lag is taken off the growth first (a wheel
         whose lagging reading crossed its command late, after an overshoot the firmware had
         long been braking: a randomized plant, 34 ms of lag). An unknown rate takes no growth.
-        Where the current reaches what calibration never saw, the command path is not judged
+        Nor is a fall asked of a torque measurably at the current limit: that a loop pushing away
+        is not saturated rests on its integral's share being clipped at the limit, and a
+        firmware's own clip (the TMCM's I-clip is a parameter of its own) may allow more, holding
+        the output at the limit while the proportional term lowers what lies beyond. Where the
+        current reaches what calibration never saw, the command path is not judged
         (observer.py); this is."""
         if not self.signed_effort or not self.settings.loop_direction or not velocity_mode.any():
             self._away = self._no_stretch()
@@ -822,7 +828,8 @@ class ResidualEvaluator:
         start_rate = last_true_value(begins, rate, start_rate)
         self._away = (away[-1], start_torque[-1], start_distance[-1], start_rate[-1])
         grown = distance - start_distance - self._reading_lag * (rate + start_rate)
-        fallen = np.minimum(self.loop_stiffness * np.where(grown > 0.0, grown, 0.0), start_torque)
+        fallen = np.where((grown > 0.0) & (size < self._at_limit),
+                          np.minimum(self.loop_stiffness * grown, start_torque), 0.0)
         excess = np.where(away & (distance >= start_distance), size - (start_torque - fallen), 0.0)
         return np.maximum(excess, 0.0)
 
