@@ -397,12 +397,11 @@ class ResidualEvaluator:
         drive = model.drive
         #: one encoder tick at the wheel [rad]
         self.position_quantum = 2.0 * np.pi * drive.gear_ratio / drive.encoder_ticks_per_revolution
-        #: speed lost per unit of unexpected friction under the firmware's proportional gain
-        #: [rad/s per N·m] (0 without a loop)
         #: the torque the firmware's proportional gain answers a speed error with, k_p k_t
         #: [N·m per rad/s] (0 without a loop)
-        self.loop_stiffness = model.firmware.velocity_kp * drive.torque_per_amp
-        stiffness = self.loop_stiffness
+        self.loop_stiffness = stiffness = model.firmware.velocity_kp * drive.torque_per_amp
+        #: speed lost per unit of unexpected friction under the firmware's proportional gain
+        #: [rad/s per N·m] (0 without a loop)
         self.loop_compliance = 1.0 / stiffness if stiffness > 0.0 else 0.0
         #: how fast a wheel's speed answers a torque disturbance under that gain, its own share of
         #: the inertia over the gain's stiffness, M_ii / (k_p k_t) (n,) [s] (0 without a loop)
