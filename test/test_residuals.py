@@ -177,10 +177,11 @@ def test_a_current_that_rises_pushing_away_from_the_command_is_no_live_loop(mode
 def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the_lag(model):
     """Where the error to the command grew by d since a wheel began pushing away, a live loop's
     current has fallen by k_p k_t d (not past zero); the host's reading may trail the firmware's
-    by the input delay tau, so tau times the reading's rate of change at both ends comes off d
-    first, an unknown rate takes no growth, and a torque at the current limit is asked no fall
-    (a saturated output may hold there). Closed forms over 5 rows of 10 ms, tau 40 ms:
-    the error grows 2.0, 2.2, 2.4, 2.4, 2.4 rad/s (rates 0, 20, 20, 0, 0 rad/s^2)."""
+    by the input delay tau, and its speed and current stand for instants up to one interval dt
+    apart, so (tau + dt) times the reading's rate of change at both ends comes off d first; an
+    unknown rate takes no growth, and a torque at the current limit is asked no fall (a
+    saturated output may hold there). Closed forms over 5 rows of 10 ms, tau 40 ms: the error
+    grows 2.0, 2.2, 2.4, 2.4, 2.4 rad/s (rates 0, 20, 20, 0, 0 rad/s^2)."""
     lag, step = 0.04, 0.01  # [s]
     evaluator = ResidualEvaluator(model, replace(FdiSettings(), torque_sigma=0.05, speed_sigma=0.02,
                                                  input_delay=lag))
@@ -197,15 +198,22 @@ def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the
     mode, fresh = np.ones(rows, dtype=bool), np.zeros(rows, dtype=bool)
     excess = evaluator._excess_pushing_away(velocity, previous, torque, target, latest, mode,
                                             fresh, np.full((rows, 1), step))
-    held = min(stiffness * 0.4, 1.0)  # rows 3-4: grown 0.4 - tau (0 + 0); rows 1-2 grow nothing
+    held = min(stiffness * 0.4, 1.0)  # rows 3-4: grown 0.4 - (tau + dt) 0; rows 1-2 grow nothing
     np.testing.assert_allclose(excess[:, 0], 0.0, atol=1e-12)  # a live loop: nothing
     # a current held at 1 N·m (a runaway): rows 1 and 2 grew 0.2 and 0.4 rad/s in the reading,
-    # less 0.04 s x 20 rad/s^2 = 0.8 rad/s the reading may have trailed by
+    # less (0.04 + 0.01) s x 20 rad/s^2 = 1 rad/s the reading may have trailed by
     np.testing.assert_allclose(excess[:, 1], [0.0, 0.0, 0.0, held, held], atol=1e-12)
     np.testing.assert_allclose(excess[:, 2], [0.0, 0.0, 0.0, 0.0, held], atol=1e-12)
     # wheel 3 begins at row 1 (0.1 N·m is within three torque_sigma): from 2.2 rad/s at 20
-    # rad/s^2, rows 3-4 grew 0.2 - 0.04 x 20 < 0
+    # rad/s^2, rows 3-4 grew 0.2 - 0.05 x 20 < 0
     np.testing.assert_allclose(excess[:, 3], 0.0, atol=1e-12)
+    # the speed and the current need not stand for one instant of a sample's interval: with no
+    # input delay, the interval (10 ms) times the rates still comes off: row 1 grew 0.2 - 0.01 x
+    # 20, row 2 0.4 - 0.01 x 20, rows 3-4 0.4
+    no_delay = ResidualEvaluator(model, replace(evaluator.settings, input_delay=0.0))
+    at_once = no_delay._excess_pushing_away(velocity, previous, torque, target, latest, mode, fresh,
+                                            np.full((rows, 1), step))
+    np.testing.assert_allclose(at_once[:, 1], [0.0, 0.0, 0.2 * stiffness, held, held], atol=1e-12)
     # a torque at the current limit is asked no fall: a saturated output may hold there
     saturated = torque.copy()
     saturated[:, 1] = model.drive.max_torque

@@ -795,10 +795,15 @@ class ResidualEvaluator:
         every sample (counted with the identified k_i, it raised 19 false alarms on 6 randomized
         plants, three of whose k_i had been identified below the truth); what it adds to a live
         loop's fall is the margin for a k_p identified too high. The error's growth is read from
-        the host's speed reading, which may trail the firmware's by up to :attr:`_reading_lag`:
-        its rate of change at both ends times that lag is taken off the growth first (a wheel
-        whose lagging reading crossed its command late, after an overshoot the firmware had
-        long been braking: a randomized plant, 34 ms of lag). An unknown rate takes no growth.
+        the host's speed reading, which may trail the firmware's by up to :attr:`_reading_lag`,
+        and whose speed and current need not stand for one instant of the sample's interval (an
+        encoder-derived speed is the interval's mean, a measured current may trail the loop's
+        output): its rate of change at both ends times that lag and the interval is taken off
+        the growth first (a wheel whose lagging reading
+        crossed its command late, after an overshoot the firmware had long been braking: a
+        randomized plant, 34 ms of lag; a wheel braked from 21 rad/s at the current limit,
+        read at 100 Hz with no delay identified, that crossed zero between two samples). An
+        unknown rate takes no growth.
         Nor is a fall asked of a torque measurably at the current limit: that a loop pushing away
         is not saturated rests on its integral's share being clipped at the limit, and a
         firmware's own clip (the TMCM's I-clip is a parameter of its own) may allow more, holding
@@ -826,7 +831,7 @@ class ResidualEvaluator:
         start_distance = last_true_value(begins, distance, start_distance)
         start_rate = last_true_value(begins, rate, start_rate)
         self._away = (away[-1], start_torque[-1], start_distance[-1], start_rate[-1])
-        grown = distance - start_distance - self._reading_lag * (rate + start_rate)
+        grown = distance - start_distance - (self._reading_lag + step) * (rate + start_rate)
         fallen = np.where((grown > 0.0) & (size < self._at_limit),
                           np.minimum(self.loop_stiffness * grown, start_torque), 0.0)
         excess = np.where(away & (distance >= start_distance), size - (start_torque - fallen), 0.0)
