@@ -13,6 +13,7 @@ from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, SPEED_NOISE_SIGMAS,
                                       PRIOR_SETTINGS, ResidualBatch, ResidualEvaluator, ResidualFrame,
                                       bound_weights)
+from youbot_fdi.fdi.recursions import shifted
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
 from youbot_fdi.model.firmware import slowest_time_constant
@@ -101,7 +102,7 @@ def test_the_command_bound_remembers_a_transient_as_the_loop_does(model):
 def _pushing_away(evaluator, velocity, torque, target, latest, mode, restart, step=0.01):
     """``_excess_pushing_away`` over rows of one interval ``step`` [s], each row's sample before
     being the row above (the first's: itself)."""
-    previous = np.vstack([velocity[:1], velocity[:-1]])
+    previous = shifted(velocity[0], velocity)
     return evaluator._excess_pushing_away(velocity, previous, torque, target, latest, mode, restart,
                                           np.full((len(velocity), 1), step))
 
@@ -139,10 +140,10 @@ def test_a_current_that_rises_pushing_away_from_the_command_is_no_live_loop(mode
     expected[:, 0] = [0.0, 0.05, 0.1 + min(0.5 * stiffness, 0.3), 0.0, 0.0, 0.1]
     np.testing.assert_allclose(excess, expected, atol=1e-12)
     one_by_one = ResidualEvaluator(model, evaluator.settings)
+    previous = shifted(velocity[0], velocity)
     by_row = np.concatenate([one_by_one._excess_pushing_away(
-        velocity[k:k + 1], velocity[max(k - 1, 0):max(k - 1, 0) + 1], torque[k:k + 1],
-        target[k:k + 1], latest[k:k + 1], mode[k:k + 1], fresh[k:k + 1], np.full((1, 1), 0.01))
-        for k in range(rows)])
+        velocity[k:k + 1], previous[k:k + 1], torque[k:k + 1], target[k:k + 1], latest[k:k + 1],
+        mode[k:k + 1], fresh[k:k + 1], np.full((1, 1), 0.01)) for k in range(rows)])
     np.testing.assert_array_equal(by_row, excess)
     restart = fresh.copy()
     restart[1] = True  # the stretch starts again at row 2 (0.4, error 2.5)
@@ -193,7 +194,7 @@ def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the
     live = 1.0 - stiffness * (distance - 2.0)  # [N·m] a live loop's current, from 1 N·m
     # pushing away: the error (command less speed) is negative, the torques positive
     torque = np.column_stack([live, np.ones(rows), np.ones(rows), [0.1, 1.0, 1.0, 1.0, 1.0]])
-    previous = np.vstack([velocity[:1], velocity[:-1]])
+    previous = shifted(velocity[0], velocity)
     previous[3, 2] = np.nan  # wheel 2: its rate unknown in row 3
     mode, fresh = np.ones(rows, dtype=bool), np.zeros(rows, dtype=bool)
     excess = evaluator._excess_pushing_away(velocity, previous, torque, target, latest, mode,
@@ -409,16 +410,16 @@ def test_the_torque_bound_remembers_a_manoeuvre_beyond_calibration_not_a_wheel_a
     np.testing.assert_array_equal(by_row, added)
     restart = fresh.copy()
     restart[4] = True
-    after = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, motion, stamp,
-                                                                               restart, lambda: fresh)
+    after = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(
+        beyond, motion, stamp, restart, lambda: fresh)
     np.testing.assert_allclose(after[:4], expected[:4], rtol=1e-9, atol=1e-12)
     assert np.all(after[4:] == 0.0)
     alone = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, unfit, stamp,
                                                                                fresh, lambda: fresh)
     assert np.all(alone == 0.0)
     followed = np.ones(rows, dtype=bool)  # every wheel moving toward its command: a turn slipped through
-    turned = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(beyond, unfit, stamp,
-                                                                                fresh, lambda: followed)
+    turned = ResidualEvaluator(model, settings)._remembered_torque_extrapolation(
+        beyond, unfit, stamp, fresh, lambda: followed)
     np.testing.assert_allclose(turned, expected, rtol=1e-9, atol=1e-12)
     # no calibrated slip, or three wheels (which always fit a motion): no row shows a manoeuvre
     assert not ResidualEvaluator(model, replace(settings, calibrated_slip=math.inf)).fit_a_motion(motion).any()
@@ -563,8 +564,8 @@ def test_a_row_follows_its_commands_where_every_wheel_moves_toward_its_command(m
     mode = np.array([True, True, True, True, True, False])
     followed = evaluator.follow_commands(now, before, commanded, mode)
     assert followed.tolist() == [True, False, False, False, False, False]
-    live = [evaluator.follow_commands(now[k:k + 1], before[k:k + 1], commanded[k:k + 1], mode[k:k + 1])[0]
-            for k in range(6)]
+    live = [evaluator.follow_commands(now[k:k + 1], before[k:k + 1], commanded[k:k + 1],
+                                      mode[k:k + 1])[0] for k in range(6)]
     assert live == followed.tolist()
 
 
@@ -580,8 +581,9 @@ def test_the_torque_shift_scale_keeps_what_a_manoeuvre_left_not_the_steady_allow
     features[0, 1, 1] = 0.5 + excess
     motion = np.tile(model.kinematics.inverse(np.array([0.8, -0.5, 2.0])), (rows, 1))
     allowance, load = np.full((rows, 4), 0.3), np.full((rows, 1), 1.5)
-    bound, scale = evaluator._torque_bounds(features, allowance, motion, load, stamp,
-                                            np.zeros(rows, dtype=bool), lambda: np.zeros(rows, dtype=bool))
+    none = np.zeros(rows, dtype=bool)
+    bound, scale = evaluator._torque_bounds(features, allowance, motion, load, stamp, none,
+                                            lambda: none)
     within = 0.05 + 0.1 * 0.5 + 0.2 * 0.5  # sigma + the current change's and friction's terms
     remembered = np.zeros((rows, 4))
     remembered[0, 1] = weight * excess  # the row's own extrapolation

@@ -799,17 +799,15 @@ class ResidualEvaluator:
         and whose speed and current need not stand for one instant of the sample's interval (an
         encoder-derived speed is the interval's mean, a measured current may trail the loop's
         output): its rate of change at both ends times that lag and the interval is taken off
-        the growth first (a wheel whose lagging reading
-        crossed its command late, after an overshoot the firmware had long been braking: a
-        randomized plant, 34 ms of lag; a wheel braked from 21 rad/s at the current limit,
-        read at 100 Hz with no delay identified, that crossed zero between two samples). An
-        unknown rate takes no growth.
-        Nor is a fall asked of a torque measurably at the current limit: that a loop pushing away
-        is not saturated rests on its integral's share being clipped at the limit, and a
-        firmware's own clip (the TMCM's I-clip is a parameter of its own) may allow more, holding
-        the output at the limit while the proportional term lowers what lies beyond. Where the
-        current reaches what calibration never saw, the command path is not judged
-        (observer.py); this is."""
+        the growth first (a wheel whose lagging reading crossed its command late, after an overshoot
+        the firmware had long been braking: a randomized plant, 34 ms of lag; a wheel braked from 21
+        rad/s at the current limit, read at 100 Hz with no delay identified, that crossed zero
+        between two samples). An unknown rate takes no growth. Nor is a fall asked of a torque
+        measurably at the current limit: that a loop pushing away is not saturated rests on its
+        integral's share being clipped at the limit, and a firmware's own clip (the TMCM's I-clip is
+        a parameter of its own) may allow more, holding the output at the limit while the
+        proportional term lowers what lies beyond. Where the current reaches what calibration never
+        saw, the command path is not judged (observer.py); this is."""
         if not self.signed_effort or not self.settings.loop_direction or not velocity_mode.any():
             self._away = self._no_stretch()
             return np.zeros_like(velocity)
@@ -894,8 +892,8 @@ class ResidualEvaluator:
         [N·m], with what a manoeuvre beyond calibration left (:meth:`_remembered_torque_
         extrapolation`; ``followed()`` (N,): the rows whose wheels all move toward their commanded
         speeds, asked for where needed), and the scale of the residual's shift
-        (:meth:`shift_scale`), at the wheel speeds ``velocity`` (N, n) [rad/s] and load factor ``load`` (N, 1). Continues the
-        state.
+        (:meth:`shift_scale`), at the wheel speeds ``velocity`` (N, n) [rad/s] and load factor
+        ``load`` (N, 1). Continues the state.
 
         The shift's scale leaves out the allowances for steady biases (they cancel in a departure
         from the recent level) but keeps what a manoeuvre left: a model error that stands in the
