@@ -12,11 +12,12 @@ from youbot_fdi.fdi.decision import DecisionMaker
 from youbot_fdi.app.config import load_residual_data
 from youbot_fdi.fdi.residuals import (BOUND_TERMS, FAMILIES, FROZEN_MIN_TICKS, SPEED_NOISE_SIGMAS,
                                       PRIOR_SETTINGS, ResidualBatch, ResidualEvaluator, ResidualFrame,
-                                      bound_weights)
+                                      bound_weights, scores)
 from youbot_fdi.fdi.recursions import shifted
 from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model import load_model
 from youbot_fdi.model.firmware import slowest_time_constant
+from youbot_fdi.samples import JointSample
 
 FAST_EXCEPT = ()  # `make check`: every test here (the unit tests of the core, under a minute)
 
@@ -284,7 +285,11 @@ def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(mod
     torque = np.full((5, 4), 0.3)
     torque[1, 2] = -1.0  # twice the calibrated effort
     torque[3, 1] = np.nan
-    witnessed = evaluator._rigid_witness(speeds, repeated, repeated, torque)
+    none, start = np.zeros((1, 4), dtype=bool), np.zeros(1, dtype=bool)
+    # the row before, in which the wheel's position moved with readings that fitted the motion
+    assert not evaluator._rigid_witness(true[None], true[None], none, none, torque[:1], start).any()
+    witnessed = evaluator._rigid_witness(speeds, speeds, repeated, repeated, torque,
+                                         np.zeros(5, dtype=bool))
     expected = np.zeros((5, 4))
     expected[[0, 4], 0] = abs(true[0]) - 0.34
     expected[1, 0] = abs(true[0]) - 0.68
@@ -300,11 +305,74 @@ def test_the_other_wheels_witness_a_frozen_reading_of_the_one_repeated_wheel(mod
     three = ResidualEvaluator(load_model('robotino'), settings)
     unread = speeds.copy()
     unread[:, 2] = np.nan  # a wheel without a speed reading: no rigid motion to witness
-    assert not evaluator._rigid_witness(unread, repeated, repeated, torque).any()
+    unmarked = np.zeros(5, dtype=bool)
+    assert not evaluator._rigid_witness(unread, unread, repeated, repeated, torque, unmarked).any()
     noisy = np.zeros_like(repeated)  # the same positions, a speed reading that changed (blocked)
-    assert not evaluator._rigid_witness(speeds, repeated, noisy, torque).any()
+    assert not evaluator._rigid_witness(speeds, speeds, repeated, noisy, torque, unmarked).any()
     alone = np.array([[True, False, False]])
-    assert not three._rigid_witness(np.array([[0.0, 2.0, -2.0]]), alone, alone, np.zeros((1, 3))).any()
+    assert not three._rigid_witness(np.array([[0.0, 2.0, -2.0]]), np.zeros((1, 3)), alone, alone,
+                                    np.zeros((1, 3)), start).any()
+
+
+def test_a_wheel_that_stood_off_the_base_when_its_position_last_moved_is_not_witnessed(model):
+    """The witness counts only what it says beyond how far the wheel's reading stood off the
+    others' rigid motion (its parity error) in the row its position last moved: a wheel standing
+    under a small current while the others' motion says it turns (its contacts sliding, its
+    position creeping a tick now and then) stood off by all of that speed then, and repeats its
+    position without a freeze (witnessed |true| - 0.34 - |true| < 0: nothing). Once it has moved
+    with the base again (parity error 0), a repeat is witnessed as before; at a restart the
+    row's own readings stand for the last move (here standing off: nothing after it)."""
+    settings = replace(FdiSettings(), calibrated_slip=0.05, speed_sigma=0.01, calibrated_effort=0.5)
+    evaluator = ResidualEvaluator(model, settings)
+    true = model.kinematics.inverse(np.array([0.2, -0.05, 0.2]))  # [rad/s]
+    standing = true.copy()
+    standing[0] = 0.0  # the wheel reads 0 (it stands, or its encoder froze)
+    # standing off the motion by all of the wheel's true speed; the rigid motion: not at all
+    np.testing.assert_allclose(abs(evaluator._parity_alone(standing[None])[0, 0]), abs(true[0]))
+    assert abs(evaluator._parity_alone(true[None])[0, 0]) < 1e-12
+    speeds = np.array([standing, standing, standing, true, standing, standing, standing])
+    moved = [False] * 4
+    first = [True, False, False, False]
+    repeated = np.array([moved, first, first, moved, first, first, first])
+    restart = np.array([False, False, False, False, False, True, False])
+    torque = np.full((7, 4), 0.3)
+    witnessed = evaluator._rigid_witness(speeds, speeds, repeated, repeated, torque, restart)
+    expected = np.zeros((7, 4))
+    expected[4, 0] = abs(true[0]) - 0.34  # after a move with the base; not after the restart
+    np.testing.assert_allclose(witnessed, expected, atol=1e-12)
+    # row by row (the live path), the same
+    live = ResidualEvaluator(model, settings)
+    rows = [live._rigid_witness(speeds[k:k + 1], speeds[k:k + 1], repeated[k:k + 1],
+                                repeated[k:k + 1], torque[k:k + 1], restart[k:k + 1])
+            for k in range(7)]
+    np.testing.assert_allclose(np.concatenate(rows), expected, atol=1e-12)
+    # restarted with the base at rest (every reading fits): a wheel frozen since is witnessed
+    # once the base moves
+    rested = ResidualEvaluator(model, settings)
+    rested.restart(JointSample(0.0, np.zeros(4), np.zeros(4), np.zeros(4)))
+    frozen = rested._rigid_witness(standing[None], standing[None], repeated[1:2], repeated[1:2],
+                                   torque[:1], restart[:1])
+    np.testing.assert_allclose(frozen[0], [abs(true[0]) - 0.34, 0.0, 0.0, 0.0], atol=1e-12)
+
+
+def test_an_encoder_residual_is_evidence_only_where_a_reading_stopped(model):
+    """The encoder bound is judged as learned where the residual is at least half the larger
+    of the position's change and the speed readings' (a frozen position: all of the speed's; a
+    speed reading forced to zero: all of the position's; the interval a stop falls in: half);
+    elsewhere at least the residual itself, a score of at most 1 (both readings moved: the
+    speed's variation inside the interval, no stopped reading). A residual not known stays
+    unknown (silent)."""
+    bound = np.full(6, 0.002)
+    turned = np.array([0.0, 0.1, 0.1, 0.087, 0.2, np.nan])  # [rad]
+    read = np.array([0.1, 0.0, 0.05, 0.1, 0.193, 0.1])  # [rad]
+    residual = turned - read
+    judged = ResidualEvaluator._stopped_reading_bound(residual, bound, turned, read)
+    np.testing.assert_allclose(judged[:3], bound[:3])  # stopped: a position, a speed, half
+    np.testing.assert_allclose(judged[3:5], [0.013, 0.007])  # moved together: at least |r|
+    assert np.isnan(judged[5])
+    z = scores(residual, judged)
+    assert z[3] == pytest.approx(1.0) and z[4] == pytest.approx(1.0) and z[5] == 0.0
+    assert (z[:3] >= 25.0).all()
 
 
 def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(model):

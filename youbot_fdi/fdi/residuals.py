@@ -95,6 +95,10 @@ COMMAND_TRANSIENT_TERMS = ('command_transient_fraction', 'command_delay')
 #: A position reading that repeats exactly while the wheel should have turned this many encoder
 #: ticks within the interval is evidence of a frozen sensor [ticks].
 FROZEN_MIN_TICKS = 2.0
+#: An encoder residual is a stopped reading's only where it is at least this share of the larger
+#: of the two readings' motions over the interval
+#: (:meth:`ResidualEvaluator._stopped_reading_bound`) [-]
+STOPPED_SHARE = 0.5
 #: A command-path prediction started from a guessed loop state is judged once the guess has faded
 #: through this many of the loop's slowest time constants (to e^-3, 5 %) [-]
 SETTLE_TIME_CONSTANTS = 3.0
@@ -476,6 +480,9 @@ class ResidualEvaluator:
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._position_frozen = np.zeros(self.n, dtype=int)
+        #: how far [rad/s] each wheel's reading stood off the others' rigid motion (its parity
+        #: error, ``_standing_off``) in the row its position last moved (inf: none seen)
+        self._offset_at_move = np.full(self.n, np.inf)
         self.counters = {'unpaired': 0}
 
     @property
@@ -491,6 +498,7 @@ class ResidualEvaluator:
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._position_frozen = np.zeros(self.n, dtype=int)
+        self._offset_at_move = self._standing_off(velocity[None])[0]  # see _rigid_witness
         # no explained torque yet: the speed's sign
         self._last = (sample.stamp, position, velocity,
                       signed_torque(torque, velocity, self.signed_effort))
@@ -994,6 +1002,29 @@ class ResidualEvaluator:
         features = columns(1.0, np.abs(mean_speed) * step, np.abs(change) * step, np.abs(mean_speed))
         return residual, features
 
+    @staticmethod
+    def _stopped_reading_bound(residual, bound, turned, read):
+        """The encoder bound (N, n) [rad] judged: ``bound`` where the encoder residual
+        ``residual`` (N, n) [rad] is at least :data:`STOPPED_SHARE` of the larger of the two
+        readings' motions over the interval (the position's change ``turned`` and the speed
+        readings' ``read`` = mean speed x interval, (N, n) [rad]), else at least the residual
+        itself (a score of at most 1: no evidence).
+
+        Why: the family is there for a reading that stopped (a frozen position, a speed reading
+        held or forced to zero, a module repeating its last answer), which leaves the residual
+        the whole motion of the reading that still moves (half of it in the interval the stop
+        falls in). Where both readings moved and the residual is less than half the larger
+        motion, neither stopped: the difference is the speed's variation within the interval,
+        which two samples at its ends cannot show, and no fault the contract names. It is
+        largest at low rates: at 20 Hz, a wheel beside a base reversing hard (its neighbours 12
+        rad/s apart in two samples) turned 13 % less than its readings at both ends said, and a
+        wheel whose loop rang faster than the sampling (its readings alternating by 0.2 rad/s)
+        3.5 % off them, both at 2-4 of a bound that a gentle calibration had learned where the
+        two always agreed (false ``encoder_freeze`` alarms of the randomized suite, seed 3)."""
+        motion = np.maximum(np.abs(turned), np.abs(read))
+        stopped = np.abs(residual) >= STOPPED_SHARE * motion
+        return np.where(stopped, bound, np.maximum(bound, np.abs(residual)))
+
     def _moving(self, mean_speed, target, velocity_mode, step, encoder_bound, witnessed):
         """Wheels that should have turned at least ``FROZEN_MIN_TICKS`` within the interval, by the
         measured speed less its noise and (velocity mode) the commanded speed, or (current mode)
@@ -1015,13 +1046,17 @@ class ResidualEvaluator:
                          np.maximum(measured, witnessed))
         return speed * step - encoder_bound >= FROZEN_MIN_TICKS * self.position_quantum
 
-    def _rigid_witness(self, mean_speed, repeated, unchanged, torque):
+    def _rigid_witness(self, mean_speed, velocity, repeated, unchanged, torque, restart):
         """The speed [rad/s] (N, n) the other wheels' rigid motion says a wheel turns at, beyond
         what calibration saw of speeds no rigid motion explains (:meth:`rigid_speed`, less
-        :attr:`_rigid_tolerance`), for the one wheel of a row whose position reading repeated
-        (``repeated`` (N, n)), if its speed reading repeated too (``unchanged`` (N, n)); 0
-        elsewhere, and on a base of three wheels. ``mean_speed`` (N, n)
-        [rad/s] the interval's speed readings, ``torque`` (N, n) [N·m] the measured torques.
+        :meth:`_witness_tolerance`) and beyond how far the wheel's reading stood off that motion
+        in the row its position last moved, for the one wheel of a row whose position reading
+        repeated (``repeated`` (N, n)), if its speed reading repeated too (``unchanged`` (N,
+        n)); 0 elsewhere, and on a base of three wheels. ``mean_speed`` (N, n) [rad/s] the
+        interval's speed readings, ``velocity`` (N, n) [rad/s] the row's own, ``torque`` (N, n)
+        [N·m] the measured torques, ``restart`` (N,) the rows that start afresh (nothing before
+        them is known: their own readings stand for the last move). Continues (and leaves) the
+        state.
 
         Why: a speed reading differentiated from the encoder freezes with it, and in current
         mode no command says the wheel turns; on a base of four wheels or more the others' rigid
@@ -1031,26 +1066,53 @@ class ResidualEvaluator:
         position names a wheel only when it is the row's only one, as two repeated readings (a
         frozen one, and one of a wheel standing while the base turns about it) cannot be told
         apart. A wheel that truly stands while the others move (held by its friction) has its
-        contact slide at that speed; calibration measured the contacts sliding up to
-        ``calibrated_slip`` under torques up to ``calibrated_effort``, and a contact slides in
-        proportion to the force it passes, so beyond that torque the tolerance grows with the
-        largest wheel torque of the row (extrapolation widens, docs/fdi.md). A frozen encoder
-        stops the wheel's whole reading, its position and the speed differentiated from it (or
-        held); a blocked wheel's speed reading still shows its noise, and the torque path names
-        it ``stuck``: so the witness counts only for a reading whose speed repeated too."""
+        contact slide at that speed (the tolerance, :meth:`_witness_tolerance`). A frozen
+        encoder stops the wheel's whole reading, its position and the speed differentiated from
+        it (or held); a blocked wheel's speed reading still shows its noise, and the torque path
+        names it ``stuck``: so the witness counts only for a reading whose speed repeated too.
+
+        And a freeze stops a reading that was following the base: what the wheel's reading
+        already stood off the others' rigid motion when its position last moved, it stood off
+        while its encoder still counted (the wheel standing, its contacts sliding, its position
+        creeping by a tick now and then), and repeats say that again, not that the encoder
+        stopped: only what the witness says beyond it counts. Two current-mode plants of the
+        randomized suite (seed 3) had a wheel hold at 0 rad/s under a small current while the
+        others' motion said 6 rad/s, its position stepping one tick every second or third
+        sample: false ``encoder_freeze`` alarms."""
         witnessed = np.zeros_like(mean_speed)
-        only = unchanged & (np.count_nonzero(repeated, axis=1) == 1)[:, None]
-        if not (self.shows_slip and only.any()):
+        if not self.shows_slip:
+            return witnessed
+        # each wheel's parity error where its position last moved (a restart: the row's own)
+        offset = self._standing_off(np.where(restart[:, None], velocity, mean_speed))
+        offset_at_move = last_true_value(~repeated | restart[:, None], offset, self._offset_at_move)
+        self._offset_at_move = offset_at_move[-1]
+        only = unchanged & ~restart[:, None] & (np.count_nonzero(repeated, axis=1) == 1)[:, None]
+        if not only.any():
             return witnessed
         rows = np.flatnonzero(only.any(axis=1))
+        speed = (np.abs(self.rigid_speed(mean_speed[rows])) - self._witness_tolerance(torque[rows])
+                 - offset_at_move[rows])
+        witnessed[rows] = np.where(only[rows], np.maximum(0.0, np.nan_to_num(speed, nan=0.0)), 0.0)
+        return witnessed
+
+    def _standing_off(self, speeds):
+        """How far [rad/s] (N, n) each wheel's speed reading of ``speeds`` (N, n) stands off the
+        others' rigid motion (its parity error, :meth:`_parity_alone`); infinite where a reading
+        is not known."""
+        return np.nan_to_num(np.abs(self._parity_alone(speeds)), nan=np.inf)
+
+    def _witness_tolerance(self, torque):
+        """How far (N, 1) [rad/s] a wheel's speed may stand off the others' rigid motion in rows
+        of measured torques ``torque`` (N, n) [N·m] without a fault: calibration measured the
+        contacts sliding up to ``calibrated_slip`` under torques up to ``calibrated_effort``,
+        and a contact slides in proportion to the force it passes, so beyond that torque the
+        tolerance grows with the largest wheel torque of the row (extrapolation widens,
+        docs/fdi.md); infinite where calibration measured no torque or a torque is unknown."""
         # the force over calibration's: inf where calibration measured no torque (no witness),
         # NaN where a torque is unknown (no witness either), 0 without a calibrated effort
         with np.errstate(divide='ignore', invalid='ignore'):
-            force = np.abs(torque[rows]).max(axis=1) / self.settings.calibrated_effort
-        tolerance = self._rigid_tolerance * np.maximum(1.0, np.nan_to_num(force, nan=np.inf))[:, None]
-        speed = np.abs(self.rigid_speed(mean_speed[rows])) - tolerance
-        witnessed[rows] = np.where(only[rows], np.maximum(0.0, np.nan_to_num(speed, nan=0.0)), 0.0)
-        return witnessed
+            force = np.abs(torque).max(axis=1) / self.settings.calibrated_effort
+        return self._rigid_tolerance * np.maximum(1.0, np.nan_to_num(force, nan=np.inf))[:, None]
 
     @staticmethod
     def _observer_features(predicted):
@@ -1137,7 +1199,8 @@ class ResidualEvaluator:
         velocity_mode = p.velocity_mode[:, None]
         # the witness serves current mode only (velocity mode's is the command): not computed
         # for a velocity-mode row, whose _moving ignores it
-        witnessed = self._rigid_witness(mean_speed, repeated, unchanged & ~velocity_mode, torque)
+        witnessed = self._rigid_witness(mean_speed, velocity, repeated, unchanged & ~velocity_mode,
+                                        torque, restart)
         stopped = repeated & self._moving(mean_speed, p.commanded, velocity_mode, step, encoder_u,
                                           witnessed)
         position_frozen = run_lengths(stopped, self._position_frozen, restart)
@@ -1171,8 +1234,10 @@ class ResidualEvaluator:
         batch = ResidualBatch(
             stamp=stamp,
             values=dict(zip(FAMILIES, (torque_r, velocity - p.from_currents, command_r, encoder_r))),
-            bounds=dict(zip(FAMILIES, (torque_bound, self.bound('observer', observer_f),
-                                       command_u, encoder_u))),
+            bounds=dict(zip(FAMILIES, (torque_bound, self.bound('observer', observer_f), command_u,
+                                       self._stopped_reading_bound(encoder_r, encoder_u,
+                                                                   position - prev_position,
+                                                                   mean_speed * step)))),
             velocity=velocity, torque=torque, velocity_mode=p.velocity_mode, command=p.commanded,
             frozen=frozen, effort_frozen=effort_frozen, position_frozen=position_frozen,
             silent=np.zeros((rows, n)), load_factor=p.load_factor, command_speed=p.from_commands,
