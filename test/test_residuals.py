@@ -182,8 +182,9 @@ def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the
     by the input delay tau, and its speed and current stand for instants up to one interval dt
     apart, so (tau + dt) times the reading's rate of change at both ends comes off d first; an
     unknown rate takes no growth, and a torque at the current limit is asked no fall (a
-    saturated output may hold there). Closed forms over 5 rows of 10 ms, tau 40 ms: the error
-    grows 2.0, 2.2, 2.4, 2.4, 2.4 rad/s (rates 0, 20, 20, 0, 0 rad/s^2)."""
+    saturated output may hold there), and an error that has not grown past the lag's allowance
+    has not been seen to keep from shrinking (nothing counted). Closed forms over 5 rows of 10
+    ms, tau 40 ms: the error grows 2.0, 2.2, 2.4, 2.4, 2.4 rad/s (rates 0, 20, 20, 0, 0 rad/s^2)."""
     lag, step = 0.04, 0.01  # [s]
     evaluator = ResidualEvaluator(model, replace(FdiSettings(), torque_sigma=0.05, speed_sigma=0.02,
                                                  input_delay=lag))
@@ -223,6 +224,16 @@ def test_a_live_loop_turns_its_current_round_as_its_error_grows_read_through_the
         velocity, previous, saturated, target, latest, mode, fresh, np.full((rows, 1), step))
     np.testing.assert_allclose(at_limit[:, 1], 0.0, atol=1e-12)
     np.testing.assert_allclose(at_limit[:, 2], excess[:, 2], atol=1e-12)
+    # an error read no larger than the lag can explain has not been seen to keep from shrinking:
+    # a current rising 1.0 -> 1.1 N·m while the reading's error went 2.0 -> 2.2 at 20 rad/s^2
+    # (grown 0.2 - 0.05 x 20 < 0) counts nothing in that row; held there a row (rate 0), the
+    # error grew 0.2 and the loop should have fallen by 0.2 k_p k_t
+    rising = np.tile(np.array([[2.0], [2.2], [2.2]]), (1, 4))
+    rise = np.tile(np.array([[1.0], [1.1], [1.1]]), (1, 4))
+    counted = ResidualEvaluator(model, evaluator.settings)._excess_pushing_away(
+        rising, shifted(rising[0], rising), rise, np.zeros((3, 4)), np.zeros((3, 4)),
+        np.ones(3, dtype=bool), np.zeros(3, dtype=bool), np.full((3, 1), step))
+    np.testing.assert_allclose(counted[:, 0], [0.0, 0.0, 0.1 + 0.2 * stiffness], atol=1e-12)
 
 
 def test_a_noisy_speed_reading_at_rest_is_not_a_turning_wheel(model):

@@ -790,8 +790,8 @@ class ResidualEvaluator:
 
         Why: a PI loop's output changes by k_p (e - e_0) + k_i (the error summed since). Pushing
         away, it is not saturated (the integral that would need is beyond its limit), so while
-        the error keeps its sign and does not shrink, both terms lower the current that pushes
-        away, whatever the integral gain and the current limit: a current that rises is not a
+        the error keeps its sign and does not shrink (read through the lag, below), both terms
+        lower the current that pushes away, whatever the integral gain and the current limit: a current that rises is not a
         live loop's (a runaway: the wheel holds a set-point of its own against the base). The
         proportional term says more: where the error grew by ``d`` since the stretch began, a
         live loop's current has fallen by at least k_p k_t d (:attr:`loop_stiffness`), and not
@@ -810,7 +810,12 @@ class ResidualEvaluator:
         the growth first (a wheel whose lagging reading crossed its command late, after an overshoot
         the firmware had long been braking: a randomized plant, 34 ms of lag; a wheel braked from 21
         rad/s at the current limit, read at 100 Hz with no delay identified, that crossed zero
-        between two samples). An unknown rate takes no growth. Nor is a fall asked of a torque
+        between two samples), and an error that has not grown past that has not been seen to keep
+        from shrinking: a wheel of seed 3's plant 123 (200 Hz, its reading lagging 20 ms) slowing
+        to a command stepped 0.75 rad/s toward zero read 0.18 rad/s off it 35 ms after the
+        firmware's error had shrunk below that, while the loop's current returned to the
+        friction's after its proportional kick (a false ``runaway``). An unknown rate takes no
+        growth. Nor is a fall asked of a torque
         measurably at the current limit: that a loop pushing away is not saturated rests on its
         integral's share being clipped at the limit, and a firmware's own clip (the TMCM's I-clip is
         a parameter of its own) may allow more, holding the output at the limit while the
@@ -840,7 +845,7 @@ class ResidualEvaluator:
         grown = distance - start_distance - (self._reading_lag + step) * (rate + start_rate)
         fallen = np.where((grown > 0.0) & (size < self._at_limit),
                           np.minimum(self.loop_stiffness * grown, start_torque), 0.0)
-        excess = np.where(away & (distance >= start_distance), size - (start_torque - fallen), 0.0)
+        excess = np.where(away & (grown >= 0.0), size - (start_torque - fallen), 0.0)
         return np.maximum(excess, 0.0)
 
     def _no_stretch(self):
