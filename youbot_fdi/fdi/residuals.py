@@ -789,38 +789,37 @@ class ResidualEvaluator:
         mode, without a signed effort or with ``loop_direction`` off.
 
         Why: a PI loop's output changes by k_p (e - e_0) + k_i (the error summed since). Pushing
-        away, it is not saturated (the integral that would need is beyond its limit), so while
-        the error keeps its sign and does not shrink (read through the lag, below), both terms
-        lower the current that pushes away, whatever the integral gain and the current limit: a current that rises is not a
-        live loop's (a runaway: the wheel holds a set-point of its own against the base). The
-        proportional term says more: where the error grew by ``d`` since the stretch began, a
-        live loop's current has fallen by at least k_p k_t d (:attr:`loop_stiffness`), and not
-        past zero (there it would push toward the command and the stretch would end). So what
-        the torque measured now stands above the start's less min(k_p k_t d, the start's) no
-        live loop gives (a runaway held at rest while its command moved 11 rad/s off: a whole
-        current the loop should have turned round, held for 0.7 s). The integral's part is not
-        counted: it sums the error over the whole stretch, where the reading's lag weighs on
-        every sample (counted with the identified k_i, it raised 19 false alarms on 6 randomized
-        plants, three of whose k_i had been identified below the truth); what it adds to a live
-        loop's fall is the margin for a k_p identified too high. The error's growth is read from
-        the host's speed reading, which may trail the firmware's by up to :attr:`_reading_lag`,
-        and whose speed and current need not stand for one instant of the sample's interval (an
-        encoder-derived speed is the interval's mean, a measured current may trail the loop's
-        output): its rate of change at both ends times that lag and the interval is taken off
-        the growth first (a wheel whose lagging reading crossed its command late, after an overshoot
-        the firmware had long been braking: a randomized plant, 34 ms of lag; a wheel braked from 21
-        rad/s at the current limit, read at 100 Hz with no delay identified, that crossed zero
-        between two samples), and an error that has not grown past that has not been seen to keep
-        from shrinking: a wheel of seed 3's plant 123 (200 Hz, its reading lagging 20 ms) slowing
-        to a command stepped 0.75 rad/s toward zero read 0.18 rad/s off it 35 ms after the
-        firmware's error had shrunk below that, while the loop's current returned to the
-        friction's after its proportional kick (a false ``runaway``). An unknown rate takes no
-        growth. Nor is a fall asked of a torque
-        measurably at the current limit: that a loop pushing away is not saturated rests on its
-        integral's share being clipped at the limit, and a firmware's own clip (the TMCM's I-clip is
-        a parameter of its own) may allow more, holding the output at the limit while the
-        proportional term lowers what lies beyond. Where the current reaches what calibration never
-        saw, the command path is not judged (observer.py); this is."""
+        away, it is not saturated (the integral that would need is beyond its limit), so while the
+        error keeps its sign and does not shrink (read through the lag, below), both terms lower the
+        current that pushes away, whatever the integral gain and the current limit: a current that
+        rises is not a live loop's (a runaway: the wheel holds a set-point of its own against the
+        base). The proportional term says more: where the error grew by ``d`` since the stretch
+        began, a live loop's current has fallen by at least k_p k_t d (:attr:`loop_stiffness`), and
+        not past zero (there it would push toward the command and the stretch would end). So what
+        the torque measured now stands above the start's less min(k_p k_t d, the start's) no live
+        loop gives (a runaway held at rest while its command moved 11 rad/s off: a whole current the
+        loop should have turned round, held for 0.7 s). The integral's part is not counted: it sums
+        the error over the whole stretch, where the reading's lag weighs on every sample (counted
+        with the identified k_i, it raised 19 false alarms on 6 randomized plants, three of whose
+        k_i had been identified below the truth); what it adds to a live loop's fall is the margin
+        for a k_p identified too high. The error's growth is read from the host's speed reading,
+        which may trail the firmware's by up to :attr:`_reading_lag`, and whose speed and current
+        need not stand for one instant of the sample's interval (an encoder-derived speed is the
+        interval's mean, a measured current may trail the loop's output): its rate of change at both
+        ends times that lag and the interval is taken off the growth first (a wheel whose lagging
+        reading crossed its command late, after an overshoot the firmware had long been braking: a
+        randomized plant, 34 ms of lag; a wheel braked from 21 rad/s at the current limit, read at
+        100 Hz with no delay identified, that crossed zero between two samples), and an error that
+        has not grown past that has not been seen to keep from shrinking: a wheel of seed 3's plant
+        123 (200 Hz, its reading lagging 20 ms) slowing to a command stepped 0.75 rad/s toward zero
+        read 0.18 rad/s off it 35 ms after the firmware's error had shrunk below that, while the
+        loop's current returned to the friction's after its proportional kick (a false ``runaway``).
+        An unknown rate takes no growth. Nor is a fall asked of a torque measurably at the current
+        limit: that a loop pushing away is not saturated rests on its integral's share being clipped
+        at the limit, and a firmware's own clip (the TMCM's I-clip is a parameter of its own) may
+        allow more, holding the output at the limit while the proportional term lowers what lies
+        beyond. Where the current reaches what calibration never saw, the command path is not judged
+        (observer.py); this is."""
         if not self.signed_effort or not self.settings.loop_direction or not velocity_mode.any():
             self._away = self._no_stretch()
             return np.zeros_like(velocity)
