@@ -498,7 +498,7 @@ class ResidualEvaluator:
         self._frozen = np.zeros(self.n, dtype=int)
         self._effort_frozen = np.zeros(self.n, dtype=int)
         self._position_frozen = np.zeros(self.n, dtype=int)
-        self._offset_at_move = self._standing_off(velocity[None])[0]  # see _rigid_witness
+        self._offset_at_move = self._standing_off(self._parity_alone(velocity[None]))[0]  # witness
         # no explained torque yet: the speed's sign
         self._last = (sample.stamp, position, velocity,
                       signed_torque(torque, velocity, self.signed_effort))
@@ -1086,24 +1086,30 @@ class ResidualEvaluator:
         witnessed = np.zeros_like(mean_speed)
         if not self.shows_slip:
             return witnessed
-        # each wheel's parity error where its position last moved (a restart: the row's own)
-        offset = self._standing_off(np.where(restart[:, None], velocity, mean_speed))
-        offset_at_move = last_true_value(~repeated | restart[:, None], offset, self._offset_at_move)
+        # each wheel's parity error, once: where its position last moved it is how far the
+        # wheel stood off the motion (a restart: the row's own readings); in the other rows it
+        # gives the rigid speed (:meth:`rigid_speed`)
+        read = np.where(restart[:, None], velocity, mean_speed) if restart.any() else mean_speed
+        parity = self._parity_alone(read)
+        offset_at_move = last_true_value(~repeated | restart[:, None], self._standing_off(parity),
+                                         self._offset_at_move)
         self._offset_at_move = offset_at_move[-1]
         only = unchanged & ~restart[:, None] & (np.count_nonzero(repeated, axis=1) == 1)[:, None]
         if not only.any():
             return witnessed
         rows = np.flatnonzero(only.any(axis=1))
-        speed = (np.abs(self.rigid_speed(mean_speed[rows])) - self._witness_tolerance(torque[rows])
+        speed = (np.abs(mean_speed[rows] - parity[rows]) - self._witness_tolerance(torque[rows])
                  - offset_at_move[rows])
         witnessed[rows] = np.where(only[rows], np.maximum(0.0, np.nan_to_num(speed, nan=0.0)), 0.0)
         return witnessed
 
-    def _standing_off(self, speeds):
-        """How far [rad/s] (N, n) each wheel's speed reading of ``speeds`` (N, n) stands off the
-        others' rigid motion (its parity error, :meth:`_parity_alone`); infinite where a reading
-        is not known."""
-        return np.nan_to_num(np.abs(self._parity_alone(speeds)), nan=np.inf)
+    @staticmethod
+    def _standing_off(parity):
+        """How far [rad/s] (N, n) each wheel's speed reading stands off the others' rigid
+        motion, from its parity error ``parity`` (N, n) (:meth:`_parity_alone`); infinite where a
+        reading is not known."""
+        size = np.abs(parity)
+        return np.where(np.isnan(size), np.inf, size)
 
     def _witness_tolerance(self, torque):
         """How far (N, 1) [rad/s] a wheel's speed may stand off the others' rigid motion in rows
@@ -1201,8 +1207,9 @@ class ResidualEvaluator:
         effort_frozen = run_lengths(unchanged & (torque == prev_torque), self._effort_frozen, restart)
         encoder_u = self.bound('encoder', encoder_f)
         velocity_mode = p.velocity_mode[:, None]
-        # the witness serves current mode only (velocity mode's is the command): not computed
-        # for a velocity-mode row, whose _moving ignores it
+        # the witness serves current mode only (velocity mode's is the command): its speed is not
+        # computed for a velocity-mode row, whose _moving ignores it (its state is kept in every
+        # row: where each wheel's position last moved)
         witnessed = self._rigid_witness(mean_speed, velocity, repeated, unchanged & ~velocity_mode,
                                         torque, restart)
         stopped = repeated & self._moving(mean_speed, p.commanded, velocity_mode, step, encoder_u,
