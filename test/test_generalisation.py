@@ -415,8 +415,9 @@ def test_the_rollers_drag_a_floor_adds_is_measured_from_what_the_wheels_share(mo
     D = 0.05 N·m the model does not have leaves ``D shape`` unexplained: one diagonal braked, the
     other helped (against the wheels' speeds: no load factor). Every voting wheel's smoothed
     ratio of residual to pattern is D, so the shared drag is D; a fault on one wheel does not move
-    it (a median of four); a pattern of the opposite sign is no drag (it dissipates: 0); a base
-    that slips beyond calibration does not vote; omni wheels have no pattern."""
+    it (a median of four), nor let any wheel stand off it (the others agree); a pattern of the
+    opposite sign is no drag (it dissipates: 0); a base that slips beyond calibration does not
+    vote; omni wheels have no pattern."""
     from youbot_fdi.fdi.observer import ModelObserver
     speeds = model.kinematics.inverse(np.array([0.3, 0.05, 0.0]))  # kinematic convention
     shape = model.dynamics.roller_drag_shape(speeds)
@@ -428,16 +429,20 @@ def test_the_rollers_drag_a_floor_adds_is_measured_from_what_the_wheels_share(mo
     def shared(residual, settings=FdiSettings(), profile=model):
         observer = ModelObserver(profile, settings)
         velocity = np.tile(speeds, (rows, 1))
-        torque = observer._shared_drag(velocity, velocity, np.tile(residual, (rows, 1)), inertial,
-                                       friction, keep)
+        torque, spread = observer._shared_drag(velocity, velocity, np.tile(residual, (rows, 1)),
+                                               inertial, friction, keep)
         estimate = torque @ shape / (shape @ shape)  # the size: the torque is size x pattern
         np.testing.assert_allclose(torque, estimate[:, None] * shape, rtol=1e-12, atol=1e-15)
+        spreads.append(spread[-1])
         return estimate
 
+    spreads = []
     estimate = shared(drag * shape)
     assert estimate[0] == 0.0  # one row's vote is not yet a quarter of the pattern
     assert estimate[-1] == pytest.approx(drag, rel=1e-12)
     assert shared(drag * shape + fault)[-1] == pytest.approx(drag, rel=1e-12)
+    # every voter agrees, and beside the fault the three others do: no wheel may stand off it
+    np.testing.assert_allclose(spreads, 0.0, atol=1e-12)
     assert np.all(shared(-drag * shape) == 0.0)
     never_slipped = replace(FdiSettings(), calibrated_slip=0.0, speed_sigma=0.0)  # limit 0
     assert np.all(shared(drag * shape, never_slipped) == 0.0)  # rounding's slip is beyond it

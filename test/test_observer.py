@@ -142,6 +142,43 @@ def test_the_load_spread_is_how_far_the_other_wheels_stand_from_the_factor():
     np.testing.assert_allclose(load_spread(ratio[:1], factor[:1]), expected[:1], atol=1e-12)  # a live row
 
 
+def test_the_drag_spread_is_how_far_the_other_gliding_wheels_stand_from_the_shared_drag(model):
+    """Sideways, every youBot roller glides (pattern +-cos 45 deg): wheels whose residuals read
+    drags of 0.3, 0.1, 0.12 and 0.08 N·m per unit pattern share the median, 0.11, and each may
+    stand off it by the median of the *other* wheels' distances from it, times its pattern:
+    wheel 0 (the outlier, a fault's place) by 0.01 (its neighbours agree), wheels 1 and 2 by
+    0.03, wheel 3 by 0.01. Creeping after it (the rollers glide too slowly to vote), the faded
+    voters' spread stands, times the smaller pattern, alike one row at a time (the live path)
+    and in a block; once they have faded, no spread."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    velocity = model.kinematics.inverse(np.array([0.0, 0.3, 0.0]))[None]
+    creeping = 0.002 * velocity
+    ratios = np.array([0.3, 0.1, 0.12, 0.08])
+    spread = np.array([[0.01, 0.03, 0.03, 0.01]])
+
+    def drag(observer, speed, residual, keep):
+        quiet = np.zeros_like(speed)  # steady: no inertial torque, friction 1 N·m
+        return observer._shared_drag(speed, speed, residual, quiet, quiet + 1.0, np.array(keep))
+
+    shape, slow = (model.dynamics.roller_drag_shape(v) for v in (velocity, creeping))
+    np.testing.assert_allclose(np.abs(shape), np.cos(np.pi / 4), rtol=1e-6)  # every roller glides
+    assert (np.abs(slow) > 0.0).all() and (np.abs(slow) < 0.5 * np.abs(shape)).all()  # no vote
+    observer = ModelObserver(model, FdiSettings())
+    torque, allowed = drag(observer, velocity, ratios * shape, [0.0])
+    np.testing.assert_allclose(torque, 0.11 * shape, rtol=1e-9)
+    np.testing.assert_allclose(allowed, spread * np.abs(shape), rtol=1e-9)
+    # creeping, the smoothing keeping half of the voters' sums: their ratios, the drag held
+    by_row = drag(observer, creeping, 0.0 * creeping, [0.5])
+    np.testing.assert_allclose(by_row[0], 0.11 * slow, rtol=1e-9)
+    np.testing.assert_allclose(by_row[1], spread * np.abs(slow), rtol=1e-9)
+    by_block = drag(ModelObserver(model, FdiSettings()), np.concatenate([velocity, creeping]),
+                    np.concatenate([ratios * shape, 0.0 * creeping]),
+                    [0.0, 0.5])
+    for row, block in zip(by_row, by_block):
+        np.testing.assert_allclose(row, block[1:], atol=1e-12)
+    np.testing.assert_allclose(drag(observer, creeping, 0.0 * creeping, [1e-6])[1], 0.0)  # faded
+
+
 def test_a_shared_change_is_the_coulomb_parts_so_a_wheel_split_otherwise_may_stand_off_it():
     """Closed forms of split_spread: voters whose friction was a quarter Coulomb read a factor of
     2, so their Coulomb part rose fivefold (1 + 1 / 0.25), the viscous part the same: a wheel
