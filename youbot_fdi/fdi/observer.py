@@ -150,6 +150,11 @@ def load_spread(ratio: np.ndarray, factor: np.ndarray) -> np.ndarray:
     if n < 2:
         return np.zeros_like(ratio)
     deviation = np.abs(ratio - np.asarray(factor, dtype=float)[..., None])
+    if deviation.shape == (1, n):  # one row (the live path): the same medians, in plain floats
+        row = deviation[0].tolist()
+        spread = [sorted_median(sorted(d for v, d in enumerate(row) if v != w and d == d))
+                  for w in range(n)]
+        return np.array([[0.0 if m != m else m for m in spread]])
     spread = nan_median(deviation[..., other_wheels(n)])
     return np.where(np.isnan(spread), 0.0, spread)
 
