@@ -269,7 +269,9 @@ class Prediction:
     velocity_mode: bool
     explained: np.ndarray  # [N·m]
     friction: np.ndarray  # [N·m]
-    unseen_friction: np.ndarray  # [N·m] friction the contact law may miss out of its calibrated range
+    #: [N·m] friction the model may miss: the contact law's out of its calibrated range, the
+    #: speeds' beyond calibration's, a roller drag standing off the shared one (at the load factor)
+    unseen_friction: np.ndarray
     load_spread: np.ndarray  # [-] the other wheels' load ratios' median distance from the factor
     load_factor: float  # [-]
     #: wheels whose operating point the learned correction's calibration did not cover (bit w for
