@@ -606,13 +606,13 @@ class ResidualEvaluator:
         basis = self.kinematics.parity_basis
         return ((values @ basis) @ basis.T) / self._parity_weight
 
-    def rigid_speed(self, velocity: np.ndarray) -> np.ndarray:
+    def rigid_speed(self, velocity: np.ndarray, parity: np.ndarray | None = None) -> np.ndarray:
         """The speed [rad/s] (N, n) the other wheels' rigid base motion gives each wheel, from
         the wheel speeds ``velocity`` (N, n) [rad/s]: its own reading less the error of its
-        reading alone that the parity relations show (:meth:`_parity_alone`). Its own reading
-        where no relation sees it (three wheels); within :attr:`_rigid_tolerance` of the
-        reading on nominal data."""
-        return velocity - self._parity_alone(velocity)
+        reading alone that the parity relations show (:meth:`_parity_alone`; ``parity`` (N, n),
+        that error where the caller has it already). Its own reading where no relation sees it
+        (three wheels); within :attr:`_rigid_tolerance` of the reading on nominal data."""
+        return velocity - (self._parity_alone(velocity) if parity is None else parity)
 
     # ------------------------------------------------------------------ missing readings
     def silence(self, stamps: np.ndarray, answered: np.ndarray) -> np.ndarray:
@@ -1098,8 +1098,8 @@ class ResidualEvaluator:
         if not only.any():
             return witnessed
         rows = np.flatnonzero(only.any(axis=1))
-        speed = (np.abs(mean_speed[rows] - parity[rows]) - self._witness_tolerance(torque[rows])
-                 - offset_at_move[rows])
+        speed = (np.abs(self.rigid_speed(mean_speed[rows], parity[rows]))
+                 - self._witness_tolerance(torque[rows]) - offset_at_move[rows])
         witnessed[rows] = np.where(only[rows], np.maximum(0.0, np.nan_to_num(speed, nan=0.0)), 0.0)
         return witnessed
 
