@@ -429,8 +429,9 @@ def test_the_rollers_drag_a_floor_adds_is_measured_from_what_the_wheels_share(mo
     def shared(residual, settings=FdiSettings(), profile=model):
         observer = ModelObserver(profile, settings)
         velocity = np.tile(speeds, (rows, 1))
-        torque, spread = observer._shared_drag(velocity, velocity, np.tile(residual, (rows, 1)),
-                                               inertial, friction, keep)
+        torque, spread = observer._shared_drag(
+            velocity, profile.dynamics.roller_drag_shape(velocity), np.tile(residual, (rows, 1)),
+            inertial, friction, keep)
         estimate = torque @ shape / (shape @ shape)  # the size: the torque is size x pattern
         np.testing.assert_allclose(torque, estimate[:, None] * shape, rtol=1e-12, atol=1e-15)
         spreads.append(spread[-1])

@@ -142,6 +142,43 @@ def test_the_load_spread_is_how_far_the_other_wheels_stand_from_the_factor():
     np.testing.assert_allclose(load_spread(ratio[:1], factor[:1]), expected[:1], atol=1e-12)  # a live row
 
 
+def test_a_wheel_its_rollers_may_turn_more_than_its_friction_does_not_vote_on_the_load():
+    """Closed form (the randomized suite's seed 6, plant 198): a diagonal drive, two wheels
+    rolling at 12.6 rad/s and two creeping at 0.03 rad/s whose rollers glide (pattern
+    cos(pi/4)). With F_c = 0.1 N·m the creeping wheels' friction levels (F_c tanh(0.03 / v_s) +
+    b 0.03 = 0.055 N·m) are below the drag their rollers may pass (F_c cos(pi/4) tanh(glide /
+    v_s) = 0.071 N·m), the rolling ones' (0.54 N·m) far above it. Turned by their rollers, the
+    creeping wheels hold -1.2 and -1.4 times their levels and do not vote: the factor is what
+    the rolling wheels' 1.1 and 1.2 say with the value before (two voters: clip(1, 1.1, 1.2) =
+    1.1). Counted as votes (no pattern given), the median of the four is below zero: 0."""
+    from youbot_fdi.fdi.observer import coulomb_share, ModelObserver
+    from youbot_fdi.model.profile import PlatformModel
+    base = load_model('youbot')
+    coulomb = PlatformModel(replace(base.profile, dynamics=replace(
+        base.profile.dynamics, coulomb_friction=(0.1,) * 4)))
+    dyn = coulomb.dynamics
+    velocity = coulomb.kinematics.inverse(np.array([0.3, 0.3, 0.0]))
+    creeping = np.abs(velocity) < 1e-9
+    velocity = np.where(creeping, 0.03, velocity)[None]
+    viscous = np.diag(dyn.friction_matrix) * velocity
+    level = viscous + dyn.coulomb_level(velocity)
+    shape = dyn.roller_drag_shape(velocity)
+    rollers = np.abs(dyn.coulomb * shape)[0]
+    assert creeping.sum() == 2 and (rollers[creeping] > level[0, creeping]).all()
+    assert (rollers[~creeping] < level[0, ~creeping]).all()
+    ratio = np.where(creeping, [-1.2, 0.0, 0.0, -1.4], [0.0, 1.1, 1.2, 0.0])
+    torque = ratio * level  # steady: the explained torque is the level
+    observer = ModelObserver(coulomb, FdiSettings())
+    share = coulomb_share(viscous, level)
+    load, friction, _ = votes = observer._load_votes(torque, level, level, viscous, shape)
+    np.testing.assert_array_equal(load[0], np.where(creeping, 0.0, torque[0]))
+    np.testing.assert_array_equal(friction[0], np.where(creeping, 0.0, level[0]))
+    factor, _ = observer._load_factor(np.concatenate(votes, axis=1), 1.0, share)
+    assert factor[0] == pytest.approx(1.1)
+    every = observer._load_votes(torque, level, level, viscous, None)
+    assert observer._load_factor(np.concatenate(every, axis=1), 1.0, share)[0][0] == 0.0
+
+
 def test_the_drag_spread_is_how_far_the_other_gliding_wheels_stand_from_the_shared_drag(model):
     """Sideways, every youBot roller glides (pattern +-cos 45 deg): wheels whose residuals read
     drags of 0.3, 0.1, 0.12 and 0.08 N·m per unit pattern share the median, 0.11, and each may
@@ -158,7 +195,8 @@ def test_the_drag_spread_is_how_far_the_other_gliding_wheels_stand_from_the_shar
 
     def drag(observer, speed, residual, keep):
         quiet = np.zeros_like(speed)  # steady: no inertial torque, friction 1 N·m
-        return observer._shared_drag(speed, speed, residual, quiet, quiet + 1.0, np.array(keep))
+        return observer._shared_drag(speed, model.dynamics.roller_drag_shape(speed), residual,
+                                     quiet, quiet + 1.0, np.array(keep))
 
     shape, slow = (model.dynamics.roller_drag_shape(v) for v in (velocity, creeping))
     np.testing.assert_allclose(np.abs(shape), np.cos(np.pi / 4), rtol=1e-6)  # every roller glides
