@@ -831,8 +831,9 @@ class ModelObserver:
 
         Why the rollers' drag: a mecanum roller gliding along its free direction passes part of
         the floor's drag to its wheel (``_shared_drag``), up to the wheel's own Coulomb level
-        times the pattern (the allowance the unseen friction makes for it), and the sign of
-        that part is the glide's, not the wheel's: a wheel standing or creeping while the base
+        times the pattern (the unseen friction allows that level times the glide's tanh; the
+        pattern's ``cos(gamma)`` is the share that turns the wheel), and the sign of that part
+        is the glide's, not the wheel's: a wheel standing or creeping while the base
         drives along its rollers (a diagonal) is turned by it. Where it may be as large as the
         wheel's friction level, the wheel's torque measures the rollers, not its friction, and
         its ratio says nothing of the floor's scale on that friction (the randomized suite's
