@@ -427,6 +427,53 @@ def test_the_command_path_allows_the_speed_error_of_a_torque_the_wheel_carries(m
     np.testing.assert_array_equal(effort_ahead, effort_plain)
 
 
+def test_the_command_path_allows_a_lag_the_other_wheels_share_not_one_wheels_own(model):
+    """A lag every other wheel needs (r_j = lag x a_j within the noise floor s) is allowed to a
+    wheel, the least of it that fits them all, times its own acceleration; one wheel's departure
+    (a fault), a single other wheel's need, or a wheel not judged widens nothing. Worked by hand
+    with s = 0.1 rad/s: the intervals [(r - s) / a, (r + s) / a] of the lag [s]."""
+    evaluator = ResidualEvaluator(model, FdiSettings())
+    noise = np.full((3, 4), 0.1)
+    residual = np.array([[0.8, -0.4, -0.6, 0.05],   # three lag alike; the fourth stands (a = 0)
+                         [2.0, 0.02, -0.03, 0.0],   # wheel 0 departs alone
+                         [0.8, -0.4, 0.0, 0.0]])    # one other wheel needs a lag: not shared
+    acceleration = np.array([[-20.0, 10.0, 15.0, 0.0],
+                             [-20.0, 10.0, 15.0, 12.0],
+                             [-20.0, 10.0, 0.0, 0.0]])
+    voting = np.ones((3, 4), dtype=bool)
+    allowed = evaluator._shared_lag(residual, acceleration, noise, voting)
+    # row 0, wheel 0: wheels 1 and 2 need [-0.05, -0.03] and [-0.7/15, -0.5/15]: -1/30 at least;
+    # wheel 1: [-0.045, -0.035] and [-0.7/15, -0.5/15] -> -0.035; wheel 2: -0.035 too
+    expected = np.array([[20.0 / 30.0, 0.35, 0.035 * 15.0, 0.0], [0.0] * 4, [0.0] * 4])
+    np.testing.assert_allclose(allowed, expected, rtol=1e-12, atol=1e-15)
+    # a batch of one per row: the same
+    for row in range(3):
+        one = evaluator._shared_lag(residual[row:row + 1], acceleration[row:row + 1],
+                                    noise[row:row + 1], voting[row:row + 1])
+        np.testing.assert_allclose(one[0], expected[row], rtol=1e-12, atol=1e-15)
+    # wheel 1 not judged (its prediction settling): wheels 0 and 2 each keep one voter only
+    silenced = voting.copy()
+    silenced[0, 1] = False
+    assert np.all(evaluator._shared_lag(residual, acceleration, noise, silenced)[0, [0, 2]] == 0.0)
+    # the command bound (velocity mode) widens by just that: r = measured - predicted speed,
+    # a = the prediction's change over the interval; the noise floor its constant and speed terms
+    # (the defaults': 0.7 rad/s at 2 rad/s, so five times row 0's residuals)
+    lagging = 5.0 * residual[:1]
+    step = np.full((1, 1), 0.01)
+    speed, target = np.full((1, 4), 2.0), np.full((1, 4), 2.0)
+    before = speed - acceleration[:1] * step
+    flags = (np.ones((1, 1), dtype=bool), np.zeros((1, 4), dtype=bool), np.zeros((1, 4)),
+             np.zeros((1, 4)), step)
+    _, plain, features, _ = evaluator._command_terms(speed, np.zeros((1, 4)), speed, before, target,
+                                                     target, target, *flags)
+    _, widened, *_ = evaluator._command_terms(speed + lagging, np.zeros((1, 4)), speed, before,
+                                              target, target, target, *flags)
+    floor = features[..., :2] @ bound_weights(FdiSettings(), 'command')[:2]
+    shared = evaluator._shared_lag(lagging, acceleration[:1], floor, np.ones((1, 4), dtype=bool))
+    assert shared[0, 0] > 0.0
+    np.testing.assert_allclose(widened - plain, shared, rtol=1e-12, atol=1e-12)
+
+
 def test_a_wheel_is_silent_from_its_first_sample_without_a_reading_not_across_a_gap(model):
     """Only a sample closed without a wheel's reading shows its module silent: after a gap with no
     samples at all (the stream or the host stalled: the base's comm_loss if it lasts), a wheel

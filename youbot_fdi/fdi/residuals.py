@@ -99,6 +99,9 @@ FROZEN_MIN_TICKS = 2.0
 #: of the two readings' motions over the interval
 #: (:meth:`ResidualEvaluator._stopped_reading_bound`) [-]
 STOPPED_SHARE = 0.5
+#: How many other wheels must need one lag alike before it is shared (:meth:`_shared_lag`): one
+#: wheel's need may be its own fault [-]
+MIN_SHARED_LAG_VOTERS = 2
 #: A command-path prediction started from a guessed loop state is judged once the guess has faded
 #: through this many of the loop's slowest time constants (to e^-3, 5 %) [-]
 SETTLE_TIME_CONSTANTS = 3.0
@@ -743,12 +746,61 @@ class ResidualEvaluator:
         if speeds:
             velocity_u = (self.bound('command', velocity_f)
                           + np.maximum(np.abs(unseen), np.abs(disturbance)) * self.loop_compliance
-                          + np.abs(latest - target))
+                          + np.abs(latest - target)
+                          + self._shared_lag(residual, (speed - before) / step,
+                                             velocity_f[..., :2] @ self._coefficients['command'][:2],
+                                             velocity_mode & ~settling))
         # one mode (always live): only its bound is worked out
         mode_u = (np.where(velocity_mode, velocity_u, effort_u) if speeds and efforts
                   else velocity_u if speeds else effort_u)
         bound = np.where(settling, 1.0, mode_u)
         return residual, bound, velocity_f, effort_f
+
+    def _shared_lag(self, residual, acceleration, noise, voting):
+        """The allowance (N, n) [rad/s] for a lag every other wheel's command residual shares:
+        the lag of least size that each other wheel's residual ``residual`` (N, n) [rad/s]
+        needs within its noise floor ``noise`` (N, n) [rad/s], times this wheel's predicted
+        acceleration ``acceleration`` (N, n) [rad/s^2]; 0 where fewer than two other wheels vote
+        (``voting`` (N, n): judged, in velocity mode) need a lag of one sign, or none fits all.
+
+        Why: a lag between the firmware's speed and the reading (a filtered reading, a loop
+        slower than identified, a battery that sags) is one for every wheel: the same firmware
+        and the same reading serve them all. A calibration's gentle drive may hide it
+        (``identify`` fits gains and a pure delay that stand for it at the accelerations it
+        saw); a harder drive then shows it on every wheel at once, each by its own acceleration
+        (on a randomized plant whose reading lags 38 ms: three wheels 0.8-1.3 bounds behind
+        their predictions together, at the end of an acceleration). A residual r_j = lag x a_j
+        + noise bounds the lag to [(r_j - s_j) / a_j, (r_j + s_j) / a_j], s_j its noise floor; a
+        wheel departing beyond it without accelerating allows no shared lag, one within it any.
+        What every other wheel needs is the intersection of theirs, and its value nearest 0 is
+        the least they share. One wheel's fault needs a lag the healthy wheels do not, so the
+        intersection is empty or holds 0 and widens no bound; were one other wheel's need
+        enough, its fault (or what it does to the base) would pass as shared: two at least. A
+        wheel's own residual does not vote on its allowance: its fault stays its own."""
+        n = residual.shape[-1]
+        allowance = np.zeros(residual.shape)
+        # a wheel within its noise floor needs no lag (its interval holds 0; NaN: no reading)
+        departing = voting & (np.abs(residual) > noise)
+        if n < 3 or departing.sum(axis=-1).max() < MIN_SHARED_LAG_VOTERS:
+            return allowance  # nearly every row: no two wheels need a lag
+        voting = voting & np.isfinite(residual) & np.isfinite(acceleration)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            ends = np.stack(((residual - noise) / acceleration, (residual + noise) / acceleration))
+        ends = np.where(np.isnan(ends), np.array([-np.inf, np.inf])[:, None, None], ends)
+        low = np.where(voting, ends.min(axis=0), -np.inf)  # a wheel not voting: any lag
+        high = np.where(voting, ends.max(axis=0), np.inf)
+        # wheels that need their reading ahead of the prediction (r / a > 0), or behind it
+        ahead, behind = low > 0.0, high < 0.0
+        if max(ahead.sum(axis=1).max(), behind.sum(axis=1).max()) < MIN_SHARED_LAG_VOTERS:
+            return allowance  # no two wheels need a lag alike
+        for wheel in range(n):
+            others = np.arange(n) != wheel
+            lag_low, lag_high = low[:, others].max(axis=1), high[:, others].min(axis=1)
+            least = np.where(lag_low > 0.0, lag_low, np.where(lag_high < 0.0, lag_high, 0.0))
+            needing = np.where(least > 0.0, ahead[:, others].sum(axis=1), behind[:, others].sum(axis=1))
+            shared = np.where((needing >= MIN_SHARED_LAG_VOTERS) & (lag_low <= lag_high), least, 0.0)
+            allowance[:, wheel] = np.abs(shared * acceleration[:, wheel])
+        return np.where(np.isfinite(allowance), allowance, 0.0)
 
     def _settling_limit(self, velocity_mode):
         """How long a command path started from a guess is not judged, per row (N, 1) [s]
