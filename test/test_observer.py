@@ -41,6 +41,54 @@ def test_the_command_path_takes_the_measured_state_at_a_current_calibration_neve
     assert np.all(np.abs(later.from_commands - held) > 1e-6) and not later.resynced  # predicting
 
 
+def test_past_one_wheels_current_every_wheel_takes_its_speed_and_that_wheel_its_integral(model):
+    """Where wheel bl's current passes what calibration saw (and on the row after), every wheel's
+    prediction is its measured speed (the plant's torques are not the model's there, and through
+    the base they move every wheel), but only bl's integral is the one its current implies; the
+    others keep their loop's own (a current implies it only through gains and readings
+    calibration may have got wrong). After it every wheel predicts. A block gives the rows one
+    by one gave."""
+    from youbot_fdi.fdi.observer import CALIBRATED_SHARE, ModelObserver
+    from youbot_fdi.samples import CommandSample, JointBatch, JointSample
+    settings = replace(FdiSettings(), calibrated_effort=1.0)
+    signs = model.kinematics.drive_signs
+    speeds = np.array([1.0, 1.5, 2.0, 2.5])
+    stamps = [0.01, 0.02, 0.03, 0.04]
+    low = np.full(4, 0.1)
+    high = low.copy()
+    high[2] = CALIBRATED_SHARE * settings.calibrated_effort + 0.5
+    efforts = [low, high, low, low]
+
+    def observer():
+        made = ModelObserver(model, settings)
+        made.command(CommandSample(0.0, 'velocity', np.full(4, 5.0)))
+        return made
+
+    past, plain = observer(), observer()
+    rows, n = [], 4
+    for k, stamp in enumerate(stamps):
+        sample = JointSample(stamp, np.zeros(4), signs * (speeds + 0.1 * k), signs * efforts[k])
+        rows.append(past.update(sample))
+        if k < 2:
+            plain.update(JointSample(stamp, np.zeros(4), sample.velocity, signs * low))
+        if k == 1:
+            integrals, own_integrals = past._command_state[n:].copy(), plain._command_state[n:]
+            implied = past._start_integral(high[None], (speeds + 0.1)[None], np.array([True]),
+                                           (signs * 5.0)[None])[0]  # the command, kinematic
+    np.testing.assert_allclose(rows[1].from_commands, speeds + 0.1)  # every measured speed
+    others = [0, 1, 3]
+    np.testing.assert_allclose(integrals[others], own_integrals[others], rtol=1e-12)
+    assert integrals[2] == pytest.approx(implied[2]) and abs(integrals[2] - own_integrals[2]) > 1e-3
+    np.testing.assert_allclose(rows[2].from_commands, speeds + 0.2)  # the row after
+    assert np.all(np.abs(rows[3].from_commands - (speeds + 0.3)) > 1e-6)  # predicting again
+    assert list(mask_wheels(rows[1].resynced, 4)) == [False, False, True, False]
+    block = observer().update_batch(JointBatch(
+        np.array(stamps), np.zeros((4, 4)), np.array([signs * (speeds + 0.1 * k) for k in range(4)]),
+        np.array([signs * e for e in efforts])))
+    np.testing.assert_allclose(block.from_commands[1:], [row.from_commands for row in rows[1:]],
+                               rtol=1e-12)  # the first row restarts: live, no prediction
+
+
 @pytest.mark.parametrize('integral_gain', [None, 3.0])
 def test_the_command_path_settles_after_it_took_the_measured_state(model, integral_gain):
     """Where a wheel's current reached what calibration never saw, the command path took the
@@ -73,7 +121,7 @@ def test_the_command_path_settles_after_it_took_the_measured_state(model, integr
         frame = generator.update(JointSample(stamp, np.zeros(4), signs * 1.0, signs * effort))
         if frame is not None:
             judged[round(stamp, 2)] = frame.values['command'] != 0.0
-    assert not judged[0.3].any() and not judged[0.31].any()
+    assert not judged[0.3].any() and not judged[0.31].any()  # every wheel took its measured speed
     assert judged[0.29].all() or integral_gain is not None  # a slow loop still settles from its start
     # settling: after the row after the jump (0.31 s), for bl alone
     for j in range(1, int(settle / 0.01) - 1):
