@@ -738,9 +738,8 @@ class ModelObserver:
         rows, n = len(dt), self.n
         steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
         if rows == 1:  # one row (the live path): the arithmetic below without the scan's bookkeeping
-            row = self._command_row(int(steps[0]), bool(hold[0]), held,
-                                    bool(velocity_mode[0]) and not partial[0, :n].any(), target,
-                                    friction)
+            row = self._command_row(int(steps[0]), bool(hold[0]), held, bool(velocity_mode[0]),
+                                    target, friction)
             return np.where(partial[0], held[0], row)[None]
         a = np.zeros((rows, 2 * n, 2 * n))
         b = np.array(held, dtype=float)
@@ -753,11 +752,7 @@ class ModelObserver:
         if partial.any():
             a = np.where(partial[:, :, None], 0.0, a)
             b = np.where(partial, held, b)
-        # A row whose speeds all take the measured ones (``partial``) carries only the other
-        # wheels' integrals from its step, which a limit acting within one interval changes by
-        # second order: stepped linearly, not period by period (a wheel held at its limit, stuck,
-        # resyncs every row, and stepping each cost the replay twice its time).
-        saturable = advancing & velocity_mode & ~partial[:, :n].any(axis=1)
+        saturable = advancing & velocity_mode
         states = np.empty((rows, 2 * n))
         state, k, window = self._command_state, 0, SCAN_WINDOW
         while k < rows:
