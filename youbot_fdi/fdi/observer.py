@@ -733,14 +733,14 @@ class ModelObserver:
         (a prefix scan) while it is linear, period by period where it saturates. ``hold`` rows
         (N,) bool take the state ``held`` (N, 2n) instead (a restart, current mode); in the
         others the components ``partial`` (N, 2n) bool take it after the step (where a wheel's
-        current passed what calibration saw: every speed, that wheel's integral).
+        current passed what calibration saw: every speed, that wheel's integral; None: none).
         """
         rows, n = len(dt), self.n
         steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
         if rows == 1:  # one row (the live path): the arithmetic below without the scan's bookkeeping
             row = self._command_row(int(steps[0]), bool(hold[0]), held, bool(velocity_mode[0]),
                                     target, friction)
-            return np.where(partial[0], held[0], row)[None]
+            return (row if partial is None else np.where(partial[0], held[0], row))[None]
         a = np.zeros((rows, 2 * n, 2 * n))
         b = np.array(held, dtype=float)
         advancing = ~hold
@@ -749,7 +749,7 @@ class ModelObserver:
             loop_a, loop_b, loop_c = self._loop_step(int(count))
             a[pick] = loop_a
             b[pick] = target[pick] @ loop_b.T + friction[pick] @ loop_c.T
-        if partial.any():
+        if partial is not None:
             a = np.where(partial[:, :, None], 0.0, a)
             b = np.where(partial, held, b)
         saturable = advancing & velocity_mode
@@ -779,7 +779,8 @@ class ModelObserver:
             saturated = True
             while saturated and k < rows and saturable[k]:  # one by one until linear again
                 state, saturated = self._command_step(state, int(steps[k]), target[k], friction[k])
-                state = np.where(partial[k], held[k], state)
+                if partial is not None:
+                    state = np.where(partial[k], held[k], state)
                 states[k] = state
                 k += 1
         return states
@@ -1047,8 +1048,9 @@ class ModelObserver:
         # wheels' paths started from implied integrals overshot their commands by 0.3-0.8 rad/s
         # for half a second, a false `runaway`).
         resyncing = (velocity_mode & resync & ~restart)[:, None]
-        takes_measured = np.concatenate([np.broadcast_to(resyncing, own.shape), resyncing & own],
-                                        axis=1)  # (N, 2n): speeds, integrals
+        takes_measured = (np.concatenate([np.broadcast_to(resyncing, own.shape), resyncing & own],
+                                         axis=1)  # (N, 2n): speeds, integrals
+                          if resyncing.any() else None)  # none in the usual row
         integral = np.zeros_like(velocity)
         measured = restart | (velocity_mode & resync)  # rows where a wheel takes the measured state
         if measured.any():

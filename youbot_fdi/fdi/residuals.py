@@ -92,6 +92,9 @@ FRICTION_FEATURE = BOUND_TERMS['torque'].index('torque_friction_fraction')
 #: acceleration), which the loop remembers after the transient has ended
 #: (:meth:`ResidualEvaluator._remembered_transient`).
 COMMAND_TRANSIENT_TERMS = ('command_transient_fraction', 'command_delay')
+#: The command bound's noise floor, its constant and speed terms
+#: (:meth:`ResidualEvaluator._shared_lag`).
+COMMAND_NOISE_TERMS = ('command_sigma', 'command_speed_fraction')
 #: A position reading that repeats exactly while the wheel should have turned this many encoder
 #: ticks within the interval is evidence of a frozen sensor [ticks].
 FROZEN_MIN_TICKS = 2.0
@@ -446,6 +449,9 @@ class ResidualEvaluator:
         #: the command features of :data:`COMMAND_TRANSIENT_TERMS`, and their learned weights
         self._transient_terms = [BOUND_TERMS['command'].index(name) for name in COMMAND_TRANSIENT_TERMS]
         self._transient_weights = self._coefficients['command'][self._transient_terms]
+        #: the command features of :data:`COMMAND_NOISE_TERMS`, and their learned weights
+        self._noise_terms = [BOUND_TERMS['command'].index(name) for name in COMMAND_NOISE_TERMS]
+        self._noise_weights = self._coefficients['command'][self._noise_terms]
         self._ranges = {family: feature_range(settings, family) for family in BOUND_TERMS}
         self._calibrated = {family: bool(np.isfinite(r).any()) for family, r in self._ranges.items()}
         #: beyond these the WARN names a wheel: the ranges widened by their margin
@@ -747,9 +753,10 @@ class ResidualEvaluator:
             velocity_u = (self.bound('command', velocity_f)
                           + np.maximum(np.abs(unseen), np.abs(disturbance)) * self.loop_compliance
                           + np.abs(latest - target)
-                          + self._shared_lag(residual, (speed - before) / step,
-                                             velocity_f[..., :2] @ self._coefficients['command'][:2],
-                                             velocity_mode & ~settling))
+                          + self._shared_lag(
+                              residual, (speed - before) / step,
+                              velocity_f[..., self._noise_terms] @ self._noise_weights,
+                              velocity_mode & ~settling))
         # one mode (always live): only its bound is worked out
         mode_u = (np.where(velocity_mode, velocity_u, effort_u) if speeds and efforts
                   else velocity_u if speeds else effort_u)
@@ -797,8 +804,10 @@ class ResidualEvaluator:
             others = np.arange(n) != wheel
             lag_low, lag_high = low[:, others].max(axis=1), high[:, others].min(axis=1)
             least = np.where(lag_low > 0.0, lag_low, np.where(lag_high < 0.0, lag_high, 0.0))
-            needing = np.where(least > 0.0, ahead[:, others].sum(axis=1), behind[:, others].sum(axis=1))
-            shared = np.where((needing >= MIN_SHARED_LAG_VOTERS) & (lag_low <= lag_high), least, 0.0)
+            needing = np.where(least > 0.0, ahead[:, others].sum(axis=1),
+                               behind[:, others].sum(axis=1))
+            fits = (needing >= MIN_SHARED_LAG_VOTERS) & (lag_low <= lag_high)
+            shared = np.where(fits, least, 0.0)
             allowance[:, wheel] = np.abs(shared * acceleration[:, wheel])
         return np.where(np.isfinite(allowance), allowance, 0.0)
 
