@@ -89,6 +89,66 @@ def test_past_one_wheels_current_every_wheel_takes_its_speed_and_that_wheel_its_
                                rtol=1e-12)  # the first row restarts: live, no prediction
 
 
+@pytest.mark.parametrize('others_saturate', [False, True])
+def test_a_row_past_one_wheels_current_runs_it_at_its_limit_unless_another_wheels_limit_acts(
+        model, others_saturate):
+    """While wheel bl stays past its current at its limit (a stuck wheel holds it there), every
+    row takes the measured speeds and bl's implied integral, so only the other wheels'
+    integrals come from the row's step. Where only bl's loop starts the row at its limit (bl 6
+    rad/s from its command, the others on theirs), bl runs the row at that current (the model's
+    wheel past calibration is not the plant's: a stuck wheel's current stays at its limit where
+    the model's loop would let it go), the others' loops as the firmware runs them: checked
+    against the loop stepped period by period by hand; bl's own loop stepped instead gives
+    other integrals. Where the others' limits act too (a command 49 rad/s beyond their speeds),
+    the row is stepped period by period, and the firmware's anti-windup holds their integrals at
+    ``max_current / ki`` [rad] with the error's sign (a linear step winds 0.5 rad a row, past
+    the limit of 0.405 rad). A block gives the rows one by one gave."""
+    from youbot_fdi.fdi.observer import CALIBRATED_SHARE, ModelObserver
+    from youbot_fdi.samples import CommandSample, JointBatch, JointSample
+    settings = replace(FdiSettings(), calibrated_effort=1.0)
+    signs = model.kinematics.drive_signs
+    command = 50.0 if others_saturate else 1.0  # [rad/s], every wheel
+    speeds, rows, n, others = signs * 1.0, 6, 4, [0, 1, 3]  # kinematic
+    speeds[2] -= 6.0  # bl 6 rad/s off: kp times that is past the current limit
+    stamps = 0.01 * (1 + np.arange(rows))  # 10 firmware periods a row
+    efforts = np.full((rows, 4), 0.1)
+    efforts[1:, 2] = ModelObserver(model, settings).max_torque  # bl at its limit, from row 1
+    assert efforts[1, 2] >= CALIBRATED_SHARE * settings.calibrated_effort  # past what it saw
+
+    def observer():
+        made = ModelObserver(model, settings)
+        made.command(CommandSample(0.0, 'velocity', np.full(4, command)))
+        return made
+
+    live, states = observer(), []
+    for stamp, effort in zip(stamps, efforts):
+        live.update(JointSample(stamp, np.zeros(4), signs * speeds, signs * effort))
+        states.append(live._command_state.copy())
+    target, limit, top = signs * command, live._integral_limit, live.max_current  # kinematic
+    if others_saturate:
+        error = target - speeds
+        np.testing.assert_array_equal(states[-1][n:][others], np.sign(error[others]) * limit)
+    else:
+        phi, gamma = live._phi1, live._gamma1 * live.torque_per_amp  # one period; no Coulomb
+        for k in range(2, rows):  # the rows that start with bl at its limit
+            speed, integral = states[k - 1][:n].copy(), states[k - 1][n:].copy()
+            at_limit = np.sign(live.kp * (target[2] - speed[2])) * top
+            for _ in range(10):
+                error = target - speed
+                integral = integral + error * live.period
+                current = live.kp * error + live.ki * integral
+                assert np.all(np.abs(current[others]) < top)  # the others' loops stay linear
+                current[2] = at_limit
+                speed = phi @ speed + gamma @ current
+            np.testing.assert_allclose(states[k][n:][others], integral[others], rtol=1e-9)
+            stepped, _ = live._stepped(states[k - 1], 10, target, np.zeros(4))  # bl's own loop
+            assert np.abs(stepped[n:][others] - integral[others]).max() > 1e-7
+    block = observer()
+    block.update_batch(JointBatch(stamps, np.zeros((rows, 4)), np.tile(signs * speeds, (rows, 1)),
+                                  signs * efforts))
+    np.testing.assert_allclose(block._command_state, live._command_state, rtol=1e-12)
+
+
 @pytest.mark.parametrize('integral_gain', [None, 3.0])
 def test_the_command_path_settles_after_it_took_the_measured_state(model, integral_gain):
     """Where a wheel's current reached what calibration never saw, the command path took the

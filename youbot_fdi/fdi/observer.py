@@ -433,6 +433,7 @@ class ModelObserver:
         self.max_torque = drive.max_torque  # [N·m] at the wheel
         self._integral_limit = self.max_current / self.ki if self.ki > 0 else np.inf
         self._loop_cache = {}
+        self._no_wheel = np.zeros(self.n, dtype=bool)
         self._has_coulomb = bool(np.any(dyn.coulomb > 0)) or dyn.has_drag
         learned = (model.profile.learned or {}).get('torque')
         #: the learned torque correction (youbot_fdi.fdi.learned), None: physics only
@@ -553,23 +554,32 @@ class ModelObserver:
         State ``x = [speed; integral]``, ``x' = A x + B r + C c`` with r the speed target and c the
         friction torque held over the interval.
         """
-        if steps not in self._loop_cache:
+        return self._limited_loop_step(steps, self._no_wheel)[:3]
+
+    def _limited_loop_step(self, steps, limited):
+        """Exact map of ``steps`` firmware periods in which the wheels ``limited`` (n,) bool run
+        at a constant current u [A] (their loop at its current limit) and the others' loops are
+        linear: ``x' = A x + B r + C c + D u`` (:meth:`_loop_step`'s, plus D), cached."""
+        key = (steps, limited.tobytes())
+        if key not in self._loop_cache:
             n, period, g = self.n, self.period, self.torque_per_amp
-            phi, gamma, eye = self._phi1, self._gamma1, np.eye(self.n)
+            phi, eye = self._phi1, np.eye(self.n)
+            gamma = self._gamma1 * ~limited  # columns of the wheels their loop drives
             gain_p, gain_i = g * self.kp, g * self.ki
             a1 = np.block([[phi - gamma * (gain_p + gain_i * period), gamma * gain_i],
                            [-period * eye, eye]])
             b1 = np.vstack([gamma * (gain_p + gain_i * period), period * eye])
-            c1 = np.vstack([-gamma, np.zeros((n, n))])
-            a, b, c = np.eye(2 * n), np.zeros((2 * n, n)), np.zeros((2 * n, n))
+            c1 = np.vstack([-self._gamma1, np.zeros((n, n))])
+            d1 = np.vstack([self._gamma1 * g * limited, np.zeros((n, n))])
+            a, b, c, d = np.eye(2 * n), *np.zeros((3, 2 * n, n))
             # An unstable loop (gains far off: a prior's, or a long gap's many periods) overflows
             # here; a map that is not finite makes every row it advances saturated, stepped one
             # period at a time (:meth:`_saturated`), so the overflow is moot.
             with np.errstate(over='ignore', invalid='ignore'):
                 for _ in range(steps):
-                    a, b, c = a1 @ a, a1 @ b + b1, a1 @ c + c1
-            self._loop_cache[steps] = (a, b, c)
-        return self._loop_cache[steps]
+                    a, b, c, d = a1 @ a, a1 @ b + b1, a1 @ c + c1, a1 @ d + d1
+            self._loop_cache[key] = (a, b, c, d)
+        return self._loop_cache[key]
 
     def _beyond_current(self, torque):
         """Wheels (..., n) whose measured torque [N·m] reaches the largest calibration saw
@@ -670,13 +680,16 @@ class ModelObserver:
         self._last_target = target
 
     # ------------------------------------------------------------------ the command path
-    def _saturated(self, before, after, target):
+    def _saturated(self, before, after, target, counted=None):
         """Rows (M,) where the PI loop leaves its linear range between states ``before`` and
-        ``after`` (M, 2n) under ``target`` (M, n)."""
+        ``after`` (M, 2n) under ``target`` (M, n), in a wheel ``counted`` (M, n) bool (None:
+        every wheel; the others run at a constant current, :meth:`_resync_step`)."""
         n = self.n
-        error0 = target - before[:, :n]
-        start_current = self.kp * error0 + self.ki * (before[:, n:] + error0 * self.period)
+        start_current = self._first_current(before, target)
         end_current = self.kp * (target - after[:, :n]) + self.ki * after[:, n:]
+        if counted is not None:
+            start_current, end_current = start_current * counted, end_current * counted
+            after = np.concatenate([after[:, :n], after[:, n:] * counted], axis=1)
         return ((np.abs(start_current).max(axis=1) >= self.max_current)
                 | (np.abs(end_current).max(axis=1) >= self.max_current)
                 | (np.abs(after[:, n:]).max(axis=1) >= self._integral_limit)
@@ -716,6 +729,51 @@ class ModelObserver:
             speed = [sum(map(mul, row, joint)) - d for row, d in rows]
         return np.array(speed + integral), clamped
 
+    def _limited_at_start(self, held, partial, target, advancing):
+        """The wheels (N, n) that :meth:`_resync_step` runs at their current limit, where their
+        state at the row's start is known before the scan (the batch's first row: the path's
+        state; a row after a resync row in which the wheel took its measured state: ``held``'s),
+        and the current [A] (N, n) they run at (0 elsewhere). Rows ``advancing`` (N,) only."""
+        n, top = self.n, self.max_current
+        start = np.concatenate([self._command_state[None], held[:-1]])
+        known = partial[:, n:] & np.concatenate([np.ones((1, n), dtype=bool), partial[:-1, n:]])
+        current = self._first_current(start, target)
+        limited = known & (np.abs(current) >= top) & advancing[:, None]
+        return limited, np.where(limited, np.sign(current) * top, 0.0)
+
+    def _first_current(self, state, target):
+        """The PI loop's current [A] (..., n) in the first firmware period from ``state`` (...,
+        2n) under ``target`` (..., n) (unclamped)."""
+        error = target - state[..., :self.n]
+        return self.kp * error + self.ki * (state[..., self.n:] + error * self.period)
+
+    def _resync_step(self, state, steps, target, friction, own):
+        """:meth:`_command_step` of a resync row, whose wheels ``own`` (n,) bool (past their
+        current) take their measured state after it: those of them whose loop starts the row at
+        its current limit run the row at that current, the others' loops linear, in closed form
+        (:meth:`_limited_loop_step`) where no other wheel's limit acts; else period by period.
+        Returns (new state, a limit acted).
+
+        Why the limit's current: past what calibration saw the model's wheel is not the plant's
+        (a stuck wheel's current stays at its limit while the model's wheel would speed up and
+        let its current go), so the model's loop says nothing better of that wheel's current
+        within the row than that it stays where it started, and bounded; the other wheels feel
+        it only through the base. Why not period by period: a wheel held at its limit (stuck)
+        resyncs every row, and stepping each doubled a fault replay's time. Why not linear
+        (f703706, reverted): the unbounded current of a wheel far from its command drove the
+        others' paths off (4 false alarms on the simulated suite)."""
+        top = self.max_current
+        start = self._first_current(state, target)
+        limited = own & (np.abs(start) >= top)
+        if limited.any():
+            drive = np.where(limited, np.sign(start) * top, 0.0)  # [A]
+            a, b, c, d = self._limited_loop_step(steps, limited)
+            with np.errstate(over='ignore', invalid='ignore'):
+                after = a @ state + b @ target + c @ friction + d @ drive
+                if not self._saturated(state[None], after[None], target[None], ~limited[None])[0]:
+                    return after, True
+        return self._command_step(state, steps, target, friction)
+
     def _command_step(self, state, steps, target, friction):
         """``steps`` firmware periods of the velocity loop from ``state`` (2n,), called where the
         loop saturated: period by period while a limit acts in any of them, else the exact linear
@@ -739,7 +797,7 @@ class ModelObserver:
         steps = np.maximum(1, np.rint(dt / self.period)).astype(int)
         if rows == 1:  # one row (the live path): the arithmetic below without the scan's bookkeeping
             row = self._command_row(int(steps[0]), bool(hold[0]), held, bool(velocity_mode[0]),
-                                    target, friction)
+                                    target, friction, None if partial is None else partial[0, n:])
             return (row if partial is None else np.where(partial[0], held[0], row))[None]
         a = np.zeros((rows, 2 * n, 2 * n))
         b = np.array(held, dtype=float)
@@ -749,7 +807,21 @@ class ModelObserver:
             loop_a, loop_b, loop_c = self._loop_step(int(count))
             a[pick] = loop_a
             b[pick] = target[pick] @ loop_b.T + friction[pick] @ loop_c.T
+        counted = None  # the wheels whose limits end a linear stretch (None: every wheel)
         if partial is not None:
+            # rows whose wheel past its current starts at its limit, known before the scan
+            # (:meth:`_resync_step`): that wheel at the limit's current, the others linear
+            limited, drive = self._limited_at_start(held, partial, target,
+                                                    advancing & velocity_mode)
+            some = limited.any(axis=1)
+            for count, wheels in {(int(c), w.tobytes()): (c, w)
+                                  for c, w in zip(steps[some], limited[some])}.values():
+                pick = (steps == count) & (limited == wheels).all(axis=1)
+                loop_a, loop_b, loop_c, loop_d = self._limited_loop_step(int(count), wheels)
+                a[pick] = loop_a
+                b[pick] = (target[pick] @ loop_b.T + friction[pick] @ loop_c.T
+                           + drive[pick] @ loop_d.T)
+            counted = ~limited
             a = np.where(partial[:, :, None], 0.0, a)
             b = np.where(partial, held, b)
         saturable = advancing & velocity_mode
@@ -766,7 +838,8 @@ class ModelObserver:
             with np.errstate(over='ignore', invalid='ignore'):
                 scanned = affine_recursion(a[k:end], b[k:end], state)
                 before = np.concatenate([state[None], scanned[:-1]])
-                bad = saturable[k:end] & self._saturated(before, scanned, target[k:end])
+                bad = saturable[k:end] & self._saturated(
+                    before, scanned, target[k:end], None if counted is None else counted[k:end])
             good = int(np.argmax(bad)) if bad.any() else len(bad)
             states[k:k + good] = scanned[:good]
             k += good
@@ -778,16 +851,21 @@ class ModelObserver:
             state = before[good]
             saturated = True
             while saturated and k < rows and saturable[k]:  # one by one until linear again
-                state, saturated = self._command_step(state, int(steps[k]), target[k], friction[k])
-                if partial is not None:
+                if partial is not None and partial[k].any():
+                    state, saturated = self._resync_step(state, int(steps[k]), target[k],
+                                                         friction[k], partial[k, n:])
                     state = np.where(partial[k], held[k], state)
+                else:
+                    state, saturated = self._command_step(state, int(steps[k]), target[k],
+                                                          friction[k])
                 states[k] = state
                 k += 1
         return states
 
-    def _command_row(self, steps, hold, held, velocity_mode, target, friction):
-        """:meth:`_command_path` of one row (``held``, ``target``, ``friction`` (1, ...)): the same
-        products in the same order (so the same bits), the state after it (2n,)."""
+    def _command_row(self, steps, hold, held, velocity_mode, target, friction, own):
+        """:meth:`_command_path` of one row (``held``, ``target``, ``friction`` (1, ...); ``own``
+        (n,) the wheels past their current, or None): the same products in the same order (so
+        the same bits), the state after it (2n,)."""
         state = self._command_state
         if hold:
             linear = np.zeros((2 * self.n, 2 * self.n)) @ state + held[0]
@@ -796,6 +874,8 @@ class ModelObserver:
             with np.errstate(over='ignore', invalid='ignore'):
                 linear = loop_a @ state + (target @ loop_b.T + friction @ loop_c.T)[0]
                 saturated = velocity_mode and self._saturated(state[None], linear[None], target)[0]
+            if saturated and own is not None and own.any():
+                return self._resync_step(state, steps, target[0], friction[0], own)[0]
             if saturated:
                 return self._command_step(state, steps, target[0], friction[0])[0]
         return linear
