@@ -729,16 +729,17 @@ class ModelObserver:
             speed = [sum(map(mul, row, joint)) - d for row, d in rows]
         return np.array(speed + integral), clamped
 
-    def _limited_at_start(self, held, partial, target, advancing):
+    def _limited_at_start(self, held, partial, target, saturable):
         """The wheels (N, n) that :meth:`_resync_step` runs at their current limit, where their
         state at the row's start is known before the scan (the batch's first row: the path's
         state; a row after a resync row in which the wheel took its measured state: ``held``'s),
-        and the current [A] (N, n) they run at (0 elsewhere). Rows ``advancing`` (N,) only."""
+        and the current [A] (N, n) they run at (0 elsewhere). Rows ``saturable`` (N,) only (the
+        velocity-mode rows the loop advances)."""
         n, top = self.n, self.max_current
         start = np.concatenate([self._command_state[None], held[:-1]])
         known = partial[:, n:] & np.concatenate([np.ones((1, n), dtype=bool), partial[:-1, n:]])
         current = self._first_current(start, target)
-        limited = known & (np.abs(current) >= top) & advancing[:, None]
+        limited = known & (np.abs(current) >= top) & saturable[:, None]
         return limited, np.where(limited, np.sign(current) * top, 0.0)
 
     def _first_current(self, state, target):
@@ -748,11 +749,12 @@ class ModelObserver:
         return self.kp * error + self.ki * (state[..., self.n:] + error * self.period)
 
     def _resync_step(self, state, steps, target, friction, own):
-        """:meth:`_command_step` of a resync row, whose wheels ``own`` (n,) bool (past their
-        current) take their measured state after it: those of them whose loop starts the row at
-        its current limit run the row at that current, the others' loops linear, in closed form
-        (:meth:`_limited_loop_step`) where no other wheel's limit acts; else period by period.
-        Returns (new state, a limit acted).
+        """:meth:`_command_step` of a row that saturated, whose wheels ``own`` (n,) bool (past
+        their current; None: none) take their measured state after it: those of them whose loop
+        starts the row at its current limit run the row at that current, the others' loops
+        linear, in closed form (:meth:`_limited_loop_step`) where no other wheel's limit acts;
+        else (and in a row without such wheels) period by period. Returns (new state, a limit
+        acted).
 
         Why the limit's current: past what calibration saw the model's wheel is not the plant's
         (a stuck wheel's current stays at its limit while the model's wheel would speed up and
@@ -762,6 +764,8 @@ class ModelObserver:
         resyncs every row, and stepping each doubled a fault replay's time. Why not linear
         (f703706, reverted): the unbounded current of a wheel far from its command drove the
         others' paths off (4 false alarms on the simulated suite)."""
+        if own is None or not own.any():
+            return self._command_step(state, steps, target, friction)
         top = self.max_current
         start = self._first_current(state, target)
         limited = own & (np.abs(start) >= top)
@@ -807,15 +811,15 @@ class ModelObserver:
             loop_a, loop_b, loop_c = self._loop_step(int(count))
             a[pick] = loop_a
             b[pick] = target[pick] @ loop_b.T + friction[pick] @ loop_c.T
+        saturable = advancing & velocity_mode
         counted = None  # the wheels whose limits end a linear stretch (None: every wheel)
         if partial is not None:
             # rows whose wheel past its current starts at its limit, known before the scan
             # (:meth:`_resync_step`): that wheel at the limit's current, the others linear
-            limited, drive = self._limited_at_start(held, partial, target,
-                                                    advancing & velocity_mode)
+            limited, drive = self._limited_at_start(held, partial, target, saturable)
             some = limited.any(axis=1)
-            for count, wheels in {(int(c), w.tobytes()): (c, w)
-                                  for c, w in zip(steps[some], limited[some])}.values():
+            for key in np.unique(np.column_stack([steps[some], limited[some]]), axis=0):
+                count, wheels = key[0], key[1:].astype(bool)  # an interval, a wheel set
                 pick = (steps == count) & (limited == wheels).all(axis=1)
                 loop_a, loop_b, loop_c, loop_d = self._limited_loop_step(int(count), wheels)
                 a[pick] = loop_a
@@ -824,7 +828,6 @@ class ModelObserver:
             counted = ~limited
             a = np.where(partial[:, :, None], 0.0, a)
             b = np.where(partial, held, b)
-        saturable = advancing & velocity_mode
         states = np.empty((rows, 2 * n))
         state, k, window = self._command_state, 0, SCAN_WINDOW
         while k < rows:
@@ -851,13 +854,10 @@ class ModelObserver:
             state = before[good]
             saturated = True
             while saturated and k < rows and saturable[k]:  # one by one until linear again
-                if partial is not None and partial[k].any():
-                    state, saturated = self._resync_step(state, int(steps[k]), target[k],
-                                                         friction[k], partial[k, n:])
+                state, saturated = self._resync_step(state, int(steps[k]), target[k], friction[k],
+                                                     None if partial is None else partial[k, n:])
+                if partial is not None:
                     state = np.where(partial[k], held[k], state)
-                else:
-                    state, saturated = self._command_step(state, int(steps[k]), target[k],
-                                                          friction[k])
                 states[k] = state
                 k += 1
         return states
@@ -874,10 +874,8 @@ class ModelObserver:
             with np.errstate(over='ignore', invalid='ignore'):
                 linear = loop_a @ state + (target @ loop_b.T + friction @ loop_c.T)[0]
                 saturated = velocity_mode and self._saturated(state[None], linear[None], target)[0]
-            if saturated and own is not None and own.any():
-                return self._resync_step(state, steps, target[0], friction[0], own)[0]
             if saturated:
-                return self._command_step(state, steps, target[0], friction[0])[0]
+                return self._resync_step(state, steps, target[0], friction[0], own)[0]
         return linear
 
     # ------------------------------------------------------------------ the model's torque
