@@ -753,8 +753,10 @@ class ModelObserver:
         their current; None: none) take their measured state after it: those of them whose loop
         starts the row at its current limit run the row at that current, the others' loops
         linear, in closed form (:meth:`_limited_loop_step`) where no other wheel's limit acts;
-        else (and in a row without such wheels) period by period. Returns (new state, a limit
-        acted).
+        else (and in a row without such wheels) period by period. Returns (new state, whether
+        the next row is stepped too: a limit acted that the prefix scan does not model; the
+        closed form is the scan's own row where it knows the wheel's start, as it does in the
+        row after this one, so :meth:`_command_path` goes back to the scan after it).
 
         Why the limit's current: past what calibration saw the model's wheel is not the plant's
         (a stuck wheel's current stays at its limit while the model's wheel would speed up and
@@ -775,7 +777,7 @@ class ModelObserver:
             with np.errstate(over='ignore', invalid='ignore'):
                 after = a @ state + b @ target + c @ friction + d @ drive
                 if not self._saturated(state[None], after[None], target[None], ~limited[None])[0]:
-                    return after, True
+                    return after, False
         return self._command_step(state, steps, target, friction)
 
     def _command_step(self, state, steps, target, friction):
