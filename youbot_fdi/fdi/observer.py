@@ -687,12 +687,13 @@ class ModelObserver:
         n = self.n
         start_current = self._first_current(before, target)
         end_current = self.kp * (target - after[:, :n]) + self.ki * after[:, n:]
+        integral = after[:, n:]
         if counted is not None:
             start_current, end_current = start_current * counted, end_current * counted
-            after = np.concatenate([after[:, :n], after[:, n:] * counted], axis=1)
+            integral = integral * counted
         return ((np.abs(start_current).max(axis=1) >= self.max_current)
                 | (np.abs(end_current).max(axis=1) >= self.max_current)
-                | (np.abs(after[:, n:]).max(axis=1) >= self._integral_limit)
+                | (np.abs(integral).max(axis=1) >= self._integral_limit)
                 | ~np.isfinite(after).all(axis=1))  # a linear scan that overflowed (NaN >= x is False)
 
     def _stepped(self, state, steps, target, friction):
@@ -735,11 +736,18 @@ class ModelObserver:
         state; a row after a resync row in which the wheel took its measured state: ``held``'s),
         and the current [A] (N, n) they run at (0 elsewhere). Rows ``saturable`` (N,) only (the
         velocity-mode rows the loop advances)."""
-        n, top = self.n, self.max_current
+        n = self.n
         start = np.concatenate([self._command_state[None], held[:-1]])
         known = partial[:, n:] & np.concatenate([np.ones((1, n), dtype=bool), partial[:-1, n:]])
-        current = self._first_current(start, target)
-        limited = known & (np.abs(current) >= top) & saturable[:, None]
+        return self._at_limit(start, target, known & saturable[:, None])
+
+    def _at_limit(self, state, target, wheels):
+        """The wheels among ``wheels`` (..., n) bool whose PI loop starts a row from ``state``
+        (..., 2n) under ``target`` (..., n) at its current limit, and the current [A] (..., n)
+        they run the row at (that limit with the loop's sign; 0 elsewhere)."""
+        top = self.max_current
+        current = self._first_current(state, target)
+        limited = wheels & (np.abs(current) >= top)
         return limited, np.where(limited, np.sign(current) * top, 0.0)
 
     def _first_current(self, state, target):
@@ -768,11 +776,8 @@ class ModelObserver:
         others' paths off (4 false alarms on the simulated suite)."""
         if own is None or not own.any():
             return self._command_step(state, steps, target, friction)
-        top = self.max_current
-        start = self._first_current(state, target)
-        limited = own & (np.abs(start) >= top)
+        limited, drive = self._at_limit(state, target, own)
         if limited.any():
-            drive = np.where(limited, np.sign(start) * top, 0.0)  # [A]
             a, b, c, d = self._limited_loop_step(steps, limited)
             with np.errstate(over='ignore', invalid='ignore'):
                 after = a @ state + b @ target + c @ friction + d @ drive
