@@ -450,6 +450,88 @@ def test_the_rollers_drag_a_floor_adds_is_measured_from_what_the_wheels_share(mo
     assert not load_model('robotino').dynamics.drag_share.any()  # omni: nothing to measure
 
 
+def test_a_payload_the_wheels_share_is_measured_as_excess_inertia(model):
+    """Accelerating forward and a little sideways, a base 40 % heavier than the model leaves 0.4
+    of each wheel's inertial torque unexplained: every voting wheel's smoothed ratio of residual
+    to inertial torque is 0.4, so the shared excess is 0.4; a fault on one wheel does not move it
+    (a median of four), nor let any wheel stand off it (the others agree); a base 40 % lighter
+    gives -0.4; rows whose inertial torque is within the friction, or within the noise a speed
+    difference puts into it, or whose wheels are within their Coulomb step, do not vote
+    (nothing measured); a base that slips beyond calibration does not vote; identify's own runs
+    do not measure it, nor a base whose effort is a magnitude (the Robotino's)."""
+    from youbot_fdi.fdi.identify import own_settings
+    from youbot_fdi.fdi.observer import ModelObserver
+    speeds = model.kinematics.inverse(np.array([0.3, 0.05, 0.0]))  # kinematic convention
+    rows, excess, fault = 200, 0.4, np.array([0.2, 0.0, 0.0, 0.0])  # [-], [N·m]
+    step = 0.01  # [s]
+    keep = np.full(rows, np.exp(-step / FdiSettings().load_time_constant))
+    pattern = np.sign(speeds) * np.array([0.3, 0.25, 0.2, 0.35])  # the model's inertial torque [N·m]
+
+    def shared(residual, inertial=pattern, friction=0.05, settings=FdiSettings(), velocity=speeds):
+        observer = ModelObserver(model, settings)
+        gamma_inv = observer._discrete_rows(np.full(rows, step))[2]
+        torque, spread = observer._shared_inertia(
+            np.tile(velocity, (rows, 1)), np.tile(residual, (rows, 1)),
+            np.tile(inertial, (rows, 1)), np.full((rows, 4), friction), gamma_inv, keep)
+        estimate = torque @ inertial / (inertial @ inertial)  # torque is excess x inertial
+        np.testing.assert_allclose(torque, estimate[:, None] * inertial, rtol=1e-12, atol=1e-15)
+        spreads.append(spread[-1])
+        return estimate
+
+    spreads = []
+    estimate = shared(excess * pattern)
+    assert estimate[0] == 0.0  # one row's vote is not yet half of a wheel voting throughout
+    assert estimate[-1] == pytest.approx(excess, rel=1e-12)
+    assert shared(excess * pattern + fault)[-1] == pytest.approx(excess, rel=1e-12)
+    np.testing.assert_allclose(spreads, 0.0, atol=1e-12)
+    assert shared(-excess * pattern)[-1] == pytest.approx(-excess, rel=1e-12)
+    assert np.all(shared(excess * pattern, friction=0.5) == 0.0)  # friction dominates
+    # wheels within their Coulomb step (starting from standing): static friction, not inertia
+    assert np.all(shared(excess * pattern, velocity=0.01 * np.sign(speeds)) == 0.0)
+    # the inertial torque of a speed difference of 3 sigma of a reading's noise, and below
+    observer = ModelObserver(model, FdiSettings())
+    gamma_inv = observer._discrete_rows(np.array([step]))[2][0]
+    noisy = replace(FdiSettings(), speed_sigma=float(np.abs(pattern).max() / (
+        3.0 * np.sqrt(2.0) * np.sqrt((gamma_inv ** 2).sum(axis=-1)).min())))
+    assert np.all(shared(excess * pattern, settings=noisy) == 0.0)
+    never_slipped = replace(FdiSettings(), calibrated_slip=0.0, speed_sigma=0.0)  # limit 0
+    assert np.all(shared(excess * pattern, settings=never_slipped) == 0.0)
+    assert own_settings().shared_inertia is False
+    # an effort's magnitude takes its sign from the explained torque: nothing to measure with
+    assert not ModelObserver(load_model('robotino'), FdiSettings())._measures_inertia
+    assert ModelObserver(model, FdiSettings())._measures_inertia
+
+
+def test_the_observer_explains_a_heavier_base_once_it_has_accelerated(model):
+    """A forward ramp of 2 m/s² from 0.05 m/s on a base whose inertia is 1.4 times the
+    model's: every wheel's ratio of unexplained to inertial torque is 0.4 from its first row, so
+    the shared excess is too, and the torque residual is gone (under 2 % of the inertial torque)
+    once the median has voters (the second row on); without the online inertia it stays at 0.4
+    of it."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    from youbot_fdi.samples import JointBatch
+    signs = model.kinematics.drive_signs
+    rows, step, acceleration = 50, 0.01, 2.0  # [-], [s], [m/s²]
+    stamps = step * np.arange(rows)
+    speed = model.kinematics.inverse(np.outer(0.05 + acceleration * stamps, [1.0, 0.0, 0.0]))
+    position = np.cumsum(speed, axis=0) * step
+
+    def joints(torque):
+        return JointBatch(stamps, signs * position, signs * speed, signs * torque)
+
+    plain = replace(FdiSettings(), shared_inertia=False)
+    model_torque = ModelObserver(model, plain).update_batch(joints(np.zeros_like(speed)))
+    inertial = model_torque.explained - model_torque.friction
+    assert np.all(np.abs(inertial[1:]) > np.abs(model_torque.friction[1:]))  # inertia dominates
+    measured = model_torque.explained + 0.4 * inertial
+    measured[0] = 2.0 * measured[1] - measured[2]  # accelerating already (the first row restarts)
+    for settings, left in ((FdiSettings(), 0.0), (plain, 0.4)):
+        batch = ResidualGenerator(model, settings).update_batch(joints(measured))
+        late = batch.stamp >= 2.5 * step
+        np.testing.assert_allclose(batch.values['torque'][late], left * inertial[-late.sum():],
+                                   atol=0.02 * np.abs(inertial).max())
+
+
 def test_unsigned_effort_is_signed_by_the_explained_torque(model):
     """A profile whose effort is a magnitude: the generator signs it, so a braking wheel's torque
     is negative as it is physically."""
