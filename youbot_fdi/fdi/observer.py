@@ -1061,15 +1061,17 @@ class ModelObserver:
         n = self.n
         before, held = self._inertia
         least = 0.5 * self.settings.torque_sigma  # see ``voters`` below
-        noise = (SPEED_NOISE_SIGMAS * np.sqrt(2.0) * self.settings.speed_sigma
-                 * np.sqrt((gamma_inv ** 2).sum(axis=-1)))
         size = np.abs(inertial)
-        # a wheel votes turning past its Coulomb step and its reading's noise: a standing or
-        # creeping wheel holds whatever static friction holds (Dynamics.coulomb_span), which the
-        # model does not know, and its sign least of all
-        turning = (np.abs(velocity) > self.model.dynamics.parameters.coulomb_velocity_scale
-                   + SPEED_NOISE_SIGMAS * self.settings.speed_sigma)
-        votes = (size > np.abs(friction)) & (size >= self.settings.torque_sigma + noise) & turning
+        votes = size > np.abs(friction)
+        if votes.any():  # beyond the noise, and turning
+            sigma = self.settings.speed_sigma
+            noise = SPEED_NOISE_SIGMAS * np.sqrt(2.0) * sigma * np.sqrt((gamma_inv ** 2).sum(axis=-1))
+            # a wheel votes turning past its Coulomb step and its reading's noise: a standing or
+            # creeping wheel holds whatever static friction holds (Dynamics.coulomb_span), which
+            # the model does not know, and its sign least of all
+            turning = (np.abs(velocity) > self.model.dynamics.parameters.coulomb_velocity_scale
+                       + SPEED_NOISE_SIGMAS * sigma)
+            votes &= (size >= self.settings.torque_sigma + noise) & turning
         if len(keep) == 1 and not votes.any() and not (np.abs(before[n:]) >= least).any():
             # One row (the live path) in which no wheel votes, nor did lately: the smoothing only
             # fades, the excess is held, and no voter spreads about it.
