@@ -169,8 +169,8 @@ def test_breaking_away_from_rest_is_the_same_over_a_block_and_row_by_row(model, 
 @given(rows=st.integers(1, 700), seed=st.integers(0, 2**32 - 1))
 def test_the_operating_point_is_the_same_over_a_block_and_row_by_row(model, rows, seed):
     """The rows that leave the operating point (the mean of the speeds and load factors since it
-    started; a wheel further than ``shift_operating_range`` of its own mean speed, or
-    ``stuck_speed``, plus three ``speed_sigma``; a load factor further than the range of its mean),
+    started; a wheel further than ``shift_operating_range`` of its own mean speed plus three
+    ``speed_sigma``; a load factor further than the range of its mean),
     by its loop, over blocks long enough for the search's block to grow and shrink (drives that
     change their point every few rows and ones that hold it for hundreds); a row without every
     reading is skipped."""
@@ -193,7 +193,7 @@ def test_the_operating_point_is_the_same_over_a_block_and_row_by_row(model, rows
             expected.append(False)
             continue
         mean = total / max(count, 1)
-        allowance = np.maximum(s.shift_operating_range * np.abs(mean[:4]), s.stuck_speed) + 3 * s.speed_sigma
+        allowance = s.shift_operating_range * np.abs(mean[:4]) + 3 * s.speed_sigma
         away = count > 0 and ((np.abs(row[:4] - mean[:4]) > allowance).any()
                               or abs(row[4] - mean[4]) > s.shift_operating_range * mean[4])
         total, count = (row.copy(), 1) if away or count == 0 else (total + row, count + 1)
@@ -216,9 +216,10 @@ def test_the_operating_point_of_the_torque_levels_changes_beyond_its_range(model
     """Closed form, against the mean of the speeds since the operating point started: from 2 rad/s
     a wheel at 2.4 is the same point (0.4 within a quarter of its mean, 0.5, plus three
     speed_sigma, 0.03); at 2.7 (0.6 from the mean 2.1) another one, whose mean is the reference
-    after; near standstill a change under stuck_speed is none. A slow wheel beside fast ones is
-    judged by its own speed: 0.4 -> 1.2 rad/s beside wheels at 8 leaves the point (0.8 > the
-    stuck_speed 0.3 + 0.03), where a quarter of the fastest (2) would not. Row by row gives the
+    after; from rest a creep of 0.2 rad/s is another point (beyond three speed_sigma: a wheel
+    leaving static friction), and 0.5 after it another again. A slow wheel beside fast ones is
+    judged by its own speed: 0.4 -> 1.2 rad/s beside wheels at 8 leaves the point (0.8 > a
+    quarter of 0.4 + 0.03), where a quarter of the fastest (2) would not. Row by row gives the
     same rows; a quantised reading jumping within three of its noise is no change."""
     s = FdiSettings()
     assert (s.shift_operating_range, s.stuck_speed, s.speed_sigma) == (0.25, 0.3, 0.01)
@@ -229,8 +230,9 @@ def test_the_operating_point_of_the_torque_levels_changes_beyond_its_range(model
     speeds = np.vstack([speeds, np.zeros((2, 4)), [[0.2, 0.0, 0.0, 0.0]], [[0.5, 0.0, 0.0, 0.0]],
                         np.tile([8.0, 0.4, 8.0, 0.4], (3, 1)), [[8.0, 1.2, 8.0, 0.4]]])
     expected = np.zeros(len(speeds), dtype=bool)
-    # 2.7; to rest; 0.5 - 0.07 > stuck_speed + 0.03 at rest (not 0.2); the drive; its slow wheel
-    expected[[4, 8, 11, 12, 15]] = True
+    # 2.7; to rest; the creep from rest (0.2 > 0.03); 0.5 from it (0.3 > 0.05 + 0.03); the
+    # drive; its slow wheel
+    expected[[4, 8, 10, 11, 12, 15]] = True
     same_load = np.ones(len(speeds))
     batched = DecisionMaker(model.wheel_names, s, load_residual_data())
     np.testing.assert_array_equal(batched.operating_point_changes(speeds, same_load), expected)
