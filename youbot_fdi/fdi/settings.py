@@ -109,8 +109,8 @@ class FdiSettings:
     # g_k = max(0, g_{k-1} + min(+-shift/u, cap) - shift_drift), alarm at g >= shift_threshold
     shift_time_constant: float = 3.0  # memory of the recent level [s]
     #: the level is a reference only at the operating point it was learned at: while no wheel's
-    #: speed leaves the mean speeds since it started by more than this share of the fastest mean
-    #: (or stuck_speed, if more) plus three speed_sigma (DecisionMaker.operating_point_changes) [-]
+    #: speed leaves its own mean since it started by more than this share of that mean plus three
+    #: speed_sigma (DecisionMaker.operating_point_changes) [-]
     shift_operating_range: float = 0.25
     shift_drift: float = 0.5  # half the shift it is made for: one bound [-]
     shift_threshold: float = 6.0  # [-]
