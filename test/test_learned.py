@@ -144,8 +144,8 @@ def test_the_learned_correction_lowers_the_spread_on_held_back_drives(tmp_path):
     """identify on one nominal drive of the independent simulator (current mode, its own RK4 plant;
     its commands act 4 ms late, so the current samples are not the torque of the interval: what
     the inertia part learns); replayed on other drives of the same robot (other seeds and another
-    path), the corrected torque residual has less spread than the physics one (both without the
-    online inertia), and no alarm is raised."""
+    path), the corrected torque residual has less spread than the physics one, and no alarm is
+    raised."""
     from dataclasses import replace
 
     from youbot_fdi.bench.independent_sim import simulate
@@ -163,10 +163,6 @@ def test_the_learned_correction_lowers_the_spread_on_held_back_drives(tmp_path):
     assert main(['identify', str(tmp_path / 'nominal'), '--output', str(params)]) == 0
     assert build_pipeline(params)[1].generator.correction is not None
     model, settings = configure(load_settings(FdiSettings, 'fdi'), params)
-    # the correction's own effect: without the online inertia, which measures an inertia the
-    # model misses at run time too (docs/fdi.md, "The base's inertia, shared": with it, the
-    # physics residual's spread here is the lower one)
-    settings = replace(settings, shared_inertia=False)
     variants = {'learned': settings, 'physics': replace(settings, physics_only=True)}
     for seed, path in ((5, drive), (6, [(0.15, 0.15, 0.4, 2.0), (-0.3, 0.0, 0.0, 2.0), (0.0, -0.2, -0.8, 2.0)])):
         simulate(tmp_path / f'held_back{seed}', path, seed=seed, mode='effort')

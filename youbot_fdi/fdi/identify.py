@@ -569,12 +569,12 @@ def _block(model, arrays):
 
 def own_settings(settings=None, **values):
     """``settings`` (default: FdiSettings()) with ``values`` set, for identify's own runs of the
-    FDI: without the online shared drag and inertia (calibration is the floor and the mass the
-    model is fitted to, so what the physics misses there is the learned corrections' and the
-    bounds', not a change of floor or payload) and without the loop's direction (the command bound identify fits is the path's own: a row
+    FDI: without the online shared drag (calibration is the floor the model is fitted to, so what
+    the physics misses there is the learned corrections' and the bounds', not a change of floor)
+    and without the loop's direction (the command bound identify fits is the path's own: a row
     the direction test judged holds the speed error instead of the path's residual)."""
     return replace(FdiSettings() if settings is None else settings, shared_drag=False,
-                   shared_inertia=False, loop_direction=False, **values)
+                   loop_direction=False, **values)
 
 
 def run_generator(model, arrays, settings):

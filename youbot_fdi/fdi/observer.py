@@ -448,13 +448,6 @@ class ModelObserver:
         self._load = (np.zeros(3 * self.n), 1.0)
         #: smoothed [drag part; glide share] per wheel and the shared drag [N·m]; outlives gaps
         self._drag = (np.zeros(2 * self.n), 0.0)
-        #: smoothed [unexplained torque along the inertial; inertial torque] per wheel and the
-        #: excess inertia the wheels share [-]; outlives gaps
-        self._inertia = (np.zeros(2 * self.n), 0.0)
-        #: the base's inertia is measured online (a payload's), as asked for, where the effort is
-        #: signed: an effort's magnitude takes its sign from the explained torque, whose inertial
-        #: part is what is measured
-        self._measures_inertia = settings.shared_inertia and drive.signed_effort
         #: the rollers pass their drag to the wheels (mecanum; omni wheels: no pattern)
         self._rollers_drag = bool(dyn.drag_share.any())
         #: the shared drag is measured: asked for, and rollers that pass it
@@ -1033,67 +1026,6 @@ class ModelObserver:
         self._drag = (smoothed[-1], float(drag[-1]))
         return drag[:, None] * shape, load_spread(ratio, drag) * np.abs(shape)
 
-    def _shared_inertia(self, velocity, residual, inertial, friction, gamma_inv, keep):
-        """(the torque [N·m] (N, n) of the base's inertia beyond the model's, how far [N·m]
-        (N, n) each wheel's may stand off it): the model's inertial torque ``inertial`` (N, n)
-        [N·m] times the excess (a fraction, at least -1) the wheels share, measured from the
-        torque the model leaves unexplained ``residual`` (N, n) [N·m] (at the load factor and
-        the shared drag) in rows of wheel speeds ``velocity`` (N, n) [rad/s]; ``friction`` (N,
-        n) [N·m] the friction level, ``gamma_inv`` (N, n, n) the rows' inverse input matrices
-        (the inertial torque per speed change [N·m·s/rad]), ``keep`` (N,) the smoothing's weight
-        of the past (the load factor's). Continues (and leaves) the state.
-
-        Why: a payload put on the base, or taken off, changes its mass and yaw inertia, which
-        every wheel feels while the base accelerates, in proportion to the inertial torque the
-        model gives it; calibration saw one mass. It is measured as the load factor and the
-        drag are, from what the wheels share: each wheel whose inertial torque stands clear of
-        the friction and of the noise a speed difference puts into it (``SPEED_NOISE_SIGMAS``
-        ``speed_sigma`` of each reading, through ``gamma_inv``: noise that the regressor
-        carries biases the ratio toward -1) votes, while the wheels fit a rigid motion, with the
-        ratio of its smoothed residual to its smoothed inertial torque, shared by the median
-        (:func:`shared_ratio`: a fault stays its wheel's). On the randomized suite's seed 8
-        (plant 93) a payload of 42 % of the base's mass put on mid-run left 0.0064 N·m per
-        rad/s² of wheel acceleration unexplained on every wheel (the wheel-referred share of
-        the payload's mass is 0.0061 kg·m²), and a wheel's residual stood at 1.2-1.4 of its bound
-        through a 0.6 m/s² ramp once the slip's widening had ended: a false ``stuck``. A wheel
-        may stand off the shared excess as far as the other voters do (:func:`load_spread`), of
-        its inertial torque."""
-        n = self.n
-        before, held = self._inertia
-        least = 0.5 * self.settings.torque_sigma  # see ``voters`` below
-        size = np.abs(inertial)
-        votes = size > np.abs(friction)
-        if votes.any():  # beyond the noise, and turning
-            sigma = self.settings.speed_sigma
-            noise = SPEED_NOISE_SIGMAS * np.sqrt(2.0) * sigma * np.sqrt((gamma_inv ** 2).sum(axis=-1))
-            # a wheel votes turning past its Coulomb step and its reading's noise: a standing or
-            # creeping wheel holds whatever static friction holds (Dynamics.coulomb_span), which
-            # the model does not know, and its sign least of all
-            turning = (np.abs(velocity) > self.model.dynamics.parameters.coulomb_velocity_scale
-                       + SPEED_NOISE_SIGMAS * sigma)
-            votes &= (size >= self.settings.torque_sigma + noise) & turning
-        if len(keep) == 1 and not votes.any() and not (np.abs(before[n:]) >= least).any():
-            # One row (the live path) in which no wheel votes, nor did lately: the smoothing only
-            # fades, the excess is held, and no voter spreads about it.
-            self._inertia = (keep[0] * before, held)
-            return held * inertial, np.zeros_like(inertial)
-        if votes.any():  # and known, rigid (a slipping contact passes traction, not inertia)
-            votes &= (np.isfinite(residual)
-                      & (self.model.kinematics.slip_speed(velocity) <= self.slip_limit)[:, None])
-        # signed: the noise of a speed difference has no sign, so it cancels in the sums
-        # (rectified, it would add to the inertial torque and bias the ratio toward -1)
-        parts = np.concatenate([np.where(votes, residual, 0.0), np.where(votes, inertial, 0.0)],
-                               axis=1)
-        smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * parts, before)
-        weight = smoothed[:, n:]
-        # a wheel's ratio counts while its smoothed inertial torque is at least half what a wheel
-        # voting throughout at the least it votes with (torque_sigma) has
-        voters = np.abs(weight) >= least
-        ratio = np.where(voters, smoothed[:, :n] / np.where(voters, weight, 1.0), np.nan)
-        excess = shared_ratio(ratio, held, -1.0)  # inertia is not negative
-        self._inertia = (smoothed[-1], float(excess[-1]))
-        return excess[:, None] * inertial, load_spread(ratio, excess) * size
-
     def _smoothing(self, step):
         """Per-row weight of the past in the load factor's smoothing (``load_time_constant``)."""
         return np.exp(-step / self.settings.load_time_constant)
@@ -1143,7 +1075,6 @@ class ModelObserver:
         explained, friction, viscous, coulomb, unseen, outside = self._explained(
             velocity, prev_velocity, phi, gamma_inv, step, torque,
             shifted(last_torque, torque))
-        inertial = explained - friction  # the model's inertial torque (as in _load_votes)
         torque = signed_torque(torque, explained, self.signed_effort)
         if not self.signed_effort and restarts:  # as _restart signs it
             torque[restart] = signed_torque(torque[restart], velocity[restart], False)
@@ -1168,14 +1099,6 @@ class ModelObserver:
             # the load factor (the bounds scale it by the factor; it was measured at it)
             unseen = unseen + np.divide(drag_spread, load[:, None], out=np.zeros_like(drag_spread),
                                         where=load[:, None] > 0.0)
-        if self._measures_inertia:
-            # after the drag: its votes are near-steady rows, these accelerating ones
-            excess, excess_spread = self._shared_inertia(
-                velocity, mean_torque - explained - (load[:, None] - 1.0) * friction,
-                inertial, friction, gamma_inv, keep)
-            explained = explained + excess
-            unseen = unseen + np.divide(excess_spread, load[:, None],
-                                        out=np.zeros_like(excess_spread), where=load[:, None] > 0.0)
 
         # The observer: x_k = (1 - K) (Phi x_{k-1} + Gamma u_k) + K y_k, K = dt / time constant.
         known = np.isfinite(mean_torque).all(axis=1, keepdims=True)

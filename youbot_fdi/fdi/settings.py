@@ -146,10 +146,6 @@ class FdiSettings:
     # share (ModelObserver._shared_drag); identify runs without it: calibration is the floor the
     # model is fitted to, and what the physics misses there is for the learned corrections
     shared_drag: bool = True
-    # the base's inertia beyond the model's (a payload's), measured online from what the wheels
-    # share (ModelObserver._shared_inertia); identify runs without it: calibration is the mass
-    # the model is fitted to
-    shared_inertia: bool = True
     # the loop's direction judged where the command path is not (ResidualEvaluator.
     # _excess_pushing_away); identify runs without it: the command bound it fits is the path's
     loop_direction: bool = True
