@@ -273,10 +273,10 @@ class DecisionMaker:
         A creeping wheel is not a standing one here: between rest and a few tenths of a rad/s a
         wheel's friction goes from whatever static friction holds to its sliding level, over a
         width the model's Coulomb step (a regularisation) does not know, so a level learned at
-        rest says nothing of a creep (randomized seed 8, plants 78 and 96, never developed on:
-        a start on a floor x2.4 with the load factor at 2.7, every wheel below ``stuck_speed``
-        for 0.4 s while their residuals rose 0 -> 0.2 N·m against a level learned standing, a
-        false ``stuck``; a wheel creeping from +0.03 through zero to -0.23 rad/s over 1.6 s
+        rest says nothing of a creep (the randomized suite's seed 8, fresh when found, plants 78
+        and 96: a start on a floor x2.4 with the load factor at 2.7, every wheel below
+        ``stuck_speed`` for 0.4 s while one's residual rose 0 -> 0.2 N·m against a level learned
+        standing, a false ``stuck``; a wheel creeping from +0.03 through zero to -0.23 rad/s over 1.6 s
         beside wheels at 2-12 rad/s, judged against a level learned all along it, a false
         ``friction``). The model's bias depends on the operating point (the
         contact law, the friction split, the speed, and the load factor the explained friction is
