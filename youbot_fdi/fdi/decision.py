@@ -276,9 +276,9 @@ class DecisionMaker:
         rest says nothing of a creep (the randomized suite's seed 8, fresh when found, plants 78
         and 96: a start on a floor x2.4 with the load factor at 2.7, every wheel below
         ``stuck_speed`` for 0.4 s while one's residual rose 0 -> 0.2 N·m against a level learned
-        standing, a false ``stuck``; a wheel creeping from +0.03 through zero to -0.23 rad/s over 1.6 s
-        beside wheels at 2-12 rad/s, judged against a level learned all along it, a false
-        ``friction``). The model's bias depends on the operating point (the
+        standing, a false ``stuck``; a wheel creeping from +0.03 through zero to -0.23 rad/s
+        over 1.6 s beside wheels at 2-12 rad/s, judged against a level learned all along it, a
+        false ``friction``). The model's bias depends on the operating point (the
         contact law, the friction split, the speed, and the load factor the explained friction is
         scaled by: a floor the factor has moved to is a model the level was not learned with), so
         a level learned at one says nothing of the residual at another; a fault changes the
