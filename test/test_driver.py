@@ -7,7 +7,9 @@ import pytest
 from tmcm_rig import forward_command, make_rig, new_channel
 from youbot_fdi.model import load_model
 from youbot_fdi.tmcm.driver import BaseDriver, CLOCK_TRACKING, DriverSettings
-from youbot_fdi.tmcm.process_data import MotorStatus, ProcessDataIds
+from youbot_fdi.model.firmware import ControlMode
+from youbot_fdi.tmcm.process_data import MotorCommand, MotorStatus, ProcessDataIds
+from youbot_fdi.tmcm.tmcl import TmclCommand, TmclReply, TmclStatus
 from youbot_fdi.timing import CycleTiming, parse_cores
 
 
@@ -144,6 +146,38 @@ def test_a_cycle_fired_right_after_another_leaves_it_open_for_its_answers(driver
         answer(driver, wheel, second)
     assert [s.cycle for s in driver.test_samples] == [first, second]
     assert all(s.answered.all() for s in driver.test_samples) and driver.missed_cycles.sum() == 0
+
+
+def reply(driver, wheel, command, status=TmclStatus.SUCCESS):
+    """Wheel ``wheel``'s module answers a TMCL ``command`` (as the receive thread hands it over)."""
+    host, payload = TmclReply(driver.settings.host_id, driver.settings.module_ids[wheel], int(status),
+                              int(command), 0).to_can()
+    driver._on_frame(host, payload, 0.0)
+
+
+def test_a_motor_off_does_not_wait_for_the_module_and_its_reply_is_reported_later(driver):
+    """The reaction's stop: the MST frame goes out and the wheel gets 0 mA from the next cycle,
+    without waiting for the module's reply (which would hold the cycle); the reply, or its
+    absence after tmcl_timeout, is reported afterwards."""
+    sent = []
+    driver.transport.send = lambda can_id, payload: sent.append((can_id, bytes(payload))) or True
+    driver.motor_off('wheel_joint_fr')  # no module on this bus: a waiting call would get None
+    driver.motor_off(3)
+    assert [TmclCommand(p[0]) for _, p in sent] == [TmclCommand.MST, TmclCommand.MST]
+    assert driver.stop_outcomes() == []  # nothing settled yet: no reply, timeout not reached
+    reply(driver, 1, TmclCommand.MST)
+    assert driver.stop_outcomes() == [('wheel_joint_fr', True)]
+    sent.clear()
+    driver.set_command('velocity', [1.0] * 4)
+    driver.cycle()  # the cycle goes on, with 0 mA for both wheels switched off
+    commands = {can_id: MotorCommand.decode(p) for can_id, p in sent}
+    modes = [commands[driver.ids.command_id(m)] for m in driver.settings.module_ids]
+    assert [(c.mode, c.value) for c in modes][1] == (int(ControlMode.CURRENT), 0)
+    assert [(c.mode, c.value) for c in modes][3] == (int(ControlMode.CURRENT), 0)
+    assert modes[0].mode == int(ControlMode.VELOCITY) and modes[0].value != 0
+    driver.test_clock.now += driver.settings.tmcl_timeout * 1.01
+    assert driver.stop_outcomes() == [('wheel_joint_br', False)]  # silent: not confirmed
+    assert driver.stop_outcomes() == []
 
 
 def test_samples_come_in_cycle_order_one_per_cycle_in_lockstep():

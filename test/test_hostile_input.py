@@ -144,6 +144,30 @@ def test_fdi_nodes_behind_a_flowing_base_are_a_pipeline_warn_not_a_base_comm_los
     assert lost[0].stamp - newest[0] == pytest.approx(FdiSettings().data_timeout, abs=1e-6)
 
 
+def test_a_stall_check_soon_after_one_that_saw_the_base_raises_no_comm_loss(harness, monkeypatch):
+    """A busy host holds the stall timer up; the timer keeps its grid, so an on-time firing can
+    follow a late one within milliseconds. Its take finds no new /joint_states sample (none came in
+    those milliseconds): that is not data_timeout of silence. Only once the base has been silent
+    for data_timeout on the node's clock is it comm_loss, stamped from the newest sample."""
+    import youbot_fdi.nodes.decision as decision_node
+    decision = harness.add(DecisionNode(context=harness.context))
+    timeout = FdiSettings().data_timeout
+    clock = [100.0]
+    monkeypatch.setattr(decision_node, 'now_seconds', lambda _node: clock[0])
+    waiting = [message(99.99)]  # the base's newest sample, not yet taken
+    monkeypatch.setattr(decision.base_watch, 'take', lambda: waiting.pop() if waiting else None)
+    decision._last_stamp = 100.0 - 1.5 * timeout  # the residuals stopped (the FDI nodes behind)
+    decision.check_stall()  # held up: the base flowed meanwhile
+    assert decision._behind_since is not None and decision.events == []
+    clock[0] += 0.01  # the next slot of the timer's grid
+    decision.check_stall()
+    assert decision.events == []
+    clock[0] += timeout  # a period later, still no sample: the base is silent
+    decision.check_stall()
+    assert [(e.wheel, e.fault, e.stamp) for e in decision.events] == [
+        (None, 'comm_loss', pytest.approx(99.99 + timeout))]
+
+
 def test_a_wheel_without_readings_is_its_comm_loss_never_a_frozen_encoder(harness):
     """The driver shim gives NaN for a module that did not answer its cycle (issue 33): single
     missing readings are missing data; a wheel silent for the data timeout is that wheel's

@@ -77,6 +77,7 @@ class DecisionNode(Node):
         self.events = []
         self._last_stamp = None  # of the last residual frame [s]
         self._heard = -math.inf  # the newest /joint_states stamp seen at a stall [s]
+        self._heard_at = -math.inf  # this node's time when it saw that sample [s]
         self._behind_since = None  # residuals stopped while /joint_states flowed: since [s]
         self.base_watch = NewestMessage(self, JointState, JOINT_STATES)
         self.faults_pub = self.create_publisher(DiagnosticArray, FAULTS, LATCHED_QOS)
@@ -144,16 +145,18 @@ class DecisionNode(Node):
         """No residual for ``data_timeout`` (the timer ran out, and runs out again every
         ``data_timeout`` while none comes): the base is silent (comm_loss) unless a /joint_states
         sample came after the last one judged, or since the last check; then the FDI nodes are
-        behind (a WARN on /diagnostics, no fault)."""
+        behind (a WARN on /diagnostics, no fault). Silent means for ``data_timeout`` on this
+        node's clock since the base data it last saw, however soon the timer fires again."""
         if self._last_stamp is None:
             return
         since = max(self._last_stamp, self._heard)
+        now = now_seconds(self)
         newest = self.base_watch.take()
         if newest is not None:
             stamp = stamp_to_seconds(newest.header.stamp)
-            heard = stamp if stamp > 0.0 else now_seconds(self)  # unstamped: it came just now
+            heard = stamp if stamp > 0.0 else now  # unstamped: it came just now
             if heard > since:
-                self._heard = heard
+                self._heard, self._heard_at = heard, now
                 if self._behind_since is None:
                     self._behind_since = since
                     self.get_logger().warning(
@@ -161,6 +164,11 @@ class DecisionNode(Node):
                         'flow: an FDI node is behind or down (not a base fault)')
                     self.publish_diagnostics()
                 return
+        if now - self._heard_at < self.settings.data_timeout:
+            # The timer keeps its period's grid: a firing held up by a busy host is followed by
+            # an on-time one soon after, and a take that soon may find no new sample. Silence
+            # counts from the last base data this node saw, on its own clock.
+            return
         self._behind_since = None
         self.emit(self.decision.data_stalled(since))
 

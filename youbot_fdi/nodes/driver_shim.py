@@ -10,7 +10,8 @@ answer within the cycle: missing data, never its previous value), and ``/diagnos
 per wheel module and one for the bus, with the cycle's period and lateness, p50/p99/max).
 Services ``~/switch_on_motors`` and ``~/switch_off_motors`` (std_srvs/Trigger), and per wheel
 ``~/switch_off_motor_<w>`` (``<w>`` the wheel suffix, e.g. ``fl``): that wheel's motor off (TMCL
-MST, then 0 mA) until ``~/switch_on_motors``; a fault reaction of the kinematics bridge.
+MST, then 0 mA) until ``~/switch_on_motors``; a fault reaction of the kinematics bridge. It answers
+at once, without holding the cycle for the module's reply, which is logged when it comes.
 A command older than ``command_timeout`` is replaced by zero speed (watchdog).
 
 ``realtime_priority`` and ``cpu_cores`` give the shim's cycle and CAN threads SCHED_FIFO priority
@@ -102,6 +103,7 @@ class DriverShimNode(Node):
             if failed:
                 self.get_logger().warning(f'modules did not answer configuration: {failed}')
         self.driver.cycle()
+        self.report_stops()
         if self.driver.timeout_recoveries > self._recoveries_told:
             self._recoveries_told = self.driver.timeout_recoveries
             self.get_logger().warning(
@@ -137,12 +139,22 @@ class DriverShimNode(Node):
         return response
 
     def on_motor_off(self, name, response):
-        reply = self.driver.motor_off(name)
-        response.success = reply is not None and reply.ok
-        response.message = (f'{name}: motor off (0 mA, coasting)' if response.success else
-                            f'{name}: 0 mA from the next cycle; the module did not confirm the stop')
+        """Answers at once (the stop frame sent, 0 mA from the next cycle): waiting for the
+        module's reply here would hold the cycle. The reply is logged by :meth:`on_cycle`."""
+        self.driver.motor_off(name)
+        response.success = True
+        response.message = f'{name}: motor off (stop frame sent, 0 mA from the next cycle, coasting)'
         self.get_logger().warning(response.message)
         return response
+
+    def report_stops(self):
+        """Log what the modules answered to the motor-off requests settled since the last cycle."""
+        for name, confirmed in self.driver.stop_outcomes():
+            if confirmed:
+                self.get_logger().info(f'{name}: the module confirmed the stop')
+            else:
+                self.get_logger().warning(f'{name}: the module did not confirm the stop within '
+                                          f'{self.settings.tmcl_timeout:g} s; 0 mA stands')
 
     def close(self):
         self.driver.close()

@@ -233,6 +233,7 @@ class BaseDriver:
         self._command_stamp = -np.inf
         self.motors_enabled = True
         self.motors_off_wheels = set()  # wheel indices switched off one by one (motor_off)
+        self._stops_pending = {}  # wheel index -> driver-clock time its MST went out [s]
         self.cycle_count = 0
         self._sent_at = {}  # cycle counter -> driver-clock time its commands went out
         self._clock_offset = None  # driver clock - module clock [s], tracked slowly
@@ -521,12 +522,34 @@ class BaseDriver:
     def motor_off(self, wheel):
         """Switch one wheel's motor off (a fault reaction): TMCL MST over the mailbox, the path
         that still reaches the motor when the module's cyclic set-point misbehaves (a runaway),
-        and 0 mA from the next cycle on until :meth:`motors_on`. Returns the module's reply (None:
-        no answer)."""
+        and 0 mA from the next cycle on until :meth:`motors_on`.
+
+        The reply is not waited for: the mailbox and the process data are separate channels, and
+        a caller on the cycle's thread (the shim's executor) waiting up to ``tmcl_timeout`` for
+        it would hold the cycle, so /joint_states would stop and the modules' controller timeout
+        would trip, just as a fault is being handled. :meth:`stop_outcomes` reports the reply."""
         index = wheel if isinstance(wheel, int) else self.wheel_names.index(wheel)
+        module = self.settings.module_ids[index]
         with self._lock:
             self.motors_off_wheels.add(index)
-        return self.request(index, TmclCommand.MST, 0, 0)
+            self._replies.pop((module, int(TmclCommand.MST)), None)
+            self._stops_pending[index] = self.clock()
+        self.transport.send(*TmclRequest(module, int(TmclCommand.MST), 0, 0, 0).to_can())
+
+    def stop_outcomes(self, now=None):
+        """The motor-off requests settled since the last call: ``(wheel name, confirmed)`` for
+        each whose module replied (confirmed if the reply is ok), or did not within
+        ``tmcl_timeout`` (not confirmed; its 0 mA command stands either way)."""
+        now = self.clock() if now is None else now
+        settled = []
+        with self._lock:
+            for index, sent_at in list(self._stops_pending.items()):
+                reply = self._replies.pop((self.settings.module_ids[index], int(TmclCommand.MST)),
+                                          None)
+                if reply is not None or now - sent_at > self.settings.tmcl_timeout:
+                    del self._stops_pending[index]
+                    settled.append((self.wheel_names[index], reply is not None and reply.ok))
+        return settled
 
     def motors_off(self):
         """Command 0 mA in current mode from the next cycle on (the wheels coast)."""
