@@ -6,7 +6,8 @@ import pytest
 
 from tmcm_rig import forward_command, make_rig, new_channel
 from youbot_fdi.model import load_model
-from youbot_fdi.tmcm.driver import BaseDriver, CLOCK_TRACKING, DriverSettings
+from youbot_fdi.tmcm.driver import BaseDriver, CLOCK_TRACKING, DriverSettings, MailboxOutcome
+from youbot_fdi.tmcm.parameters import AxisParameter
 from youbot_fdi.model.firmware import ControlMode
 from youbot_fdi.tmcm.process_data import MotorCommand, MotorStatus, ProcessDataIds
 from youbot_fdi.tmcm.tmcl import TmclCommand, TmclReply, TmclStatus
@@ -164,9 +165,9 @@ def test_a_motor_off_does_not_wait_for_the_module_and_its_reply_is_reported_late
     driver.motor_off('wheel_joint_fr')  # no module on this bus: a waiting call would get None
     driver.motor_off(3)
     assert [TmclCommand(p[0]) for _, p in sent] == [TmclCommand.MST, TmclCommand.MST]
-    assert driver.stop_outcomes() == []  # nothing settled yet: no reply, timeout not reached
+    assert driver.mailbox_outcomes() == []  # nothing settled yet: no reply, timeout not reached
     reply(driver, 1, TmclCommand.MST)
-    assert driver.stop_outcomes() == [('wheel_joint_fr', True)]
+    assert driver.mailbox_outcomes() == [MailboxOutcome('wheel_joint_fr', TmclCommand.MST, True, True)]
     sent.clear()
     driver.set_command('velocity', [1.0] * 4)
     driver.cycle()  # the cycle goes on, with 0 mA for both wheels switched off
@@ -176,8 +177,33 @@ def test_a_motor_off_does_not_wait_for_the_module_and_its_reply_is_reported_late
     assert [(c.mode, c.value) for c in modes][3] == (int(ControlMode.CURRENT), 0)
     assert modes[0].mode == int(ControlMode.VELOCITY) and modes[0].value != 0
     driver.test_clock.now += driver.settings.tmcl_timeout * 1.01
-    assert driver.stop_outcomes() == [('wheel_joint_br', False)]  # silent: not confirmed
-    assert driver.stop_outcomes() == []
+    # silent: not confirmed
+    assert driver.mailbox_outcomes() == [MailboxOutcome('wheel_joint_br', TmclCommand.MST, False, False)]
+    assert driver.mailbox_outcomes() == []
+
+
+def test_switching_on_clears_every_module_without_waiting_and_names_a_silent_one(driver):
+    """The motors on again: both sticky flags' clearing sent to every module at once; a module
+    that answers with an error or not at all is reported, and the others are not."""
+    sent = []
+    driver.transport.send = lambda can_id, payload: sent.append((can_id, bytes(payload))) or True
+    driver.motor_off(0)
+    driver.motors_on()
+    assert driver.motors_enabled and driver.motors_off_wheels == set()
+    clears = [(can_id, p[1]) for can_id, p in sent if TmclCommand(p[0]) is TmclCommand.SAP]
+    assert sorted(clears) == sorted((m, int(parameter)) for m in driver.settings.module_ids
+                                    for parameter in (AxisParameter.CLEAR_TIMEOUT_FLAG,
+                                                      AxisParameter.CLEAR_I2T_FLAG))
+    reply(driver, 0, TmclCommand.MST)
+    for wheel in (0, 1):
+        reply(driver, wheel, TmclCommand.SAP)
+    reply(driver, 2, TmclCommand.SAP, TmclStatus.INVALID_VALUE)
+    assert driver.mailbox_outcomes() == [MailboxOutcome('wheel_joint_fl', TmclCommand.MST, True, True),
+                                         MailboxOutcome('wheel_joint_fl', TmclCommand.SAP, True, True),
+                                         MailboxOutcome('wheel_joint_fr', TmclCommand.SAP, True, True),
+                                         MailboxOutcome('wheel_joint_bl', TmclCommand.SAP, True, False)]
+    driver.test_clock.now += driver.settings.tmcl_timeout * 1.01
+    assert driver.mailbox_outcomes() == [MailboxOutcome('wheel_joint_br', TmclCommand.SAP, False, False)]
 
 
 def test_samples_come_in_cycle_order_one_per_cycle_in_lockstep():

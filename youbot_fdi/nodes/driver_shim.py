@@ -10,8 +10,9 @@ answer within the cycle: missing data, never its previous value), and ``/diagnos
 per wheel module and one for the bus, with the cycle's period and lateness, p50/p99/max).
 Services ``~/switch_on_motors`` and ``~/switch_off_motors`` (std_srvs/Trigger), and per wheel
 ``~/switch_off_motor_<w>`` (``<w>`` the wheel suffix, e.g. ``fl``): that wheel's motor off (TMCL
-MST, then 0 mA) until ``~/switch_on_motors``; a fault reaction of the kinematics bridge. It answers
-at once, without holding the cycle for the module's reply, which is logged when it comes.
+MST, then 0 mA) until ``~/switch_on_motors``; a fault reaction of the kinematics bridge. The
+services answer at once, without holding the process-data cycle for the modules' TMCL replies,
+which are logged when they come (or do not, within ``tmcl_timeout``).
 A command older than ``command_timeout`` is replaced by zero speed (watchdog).
 
 ``realtime_priority`` and ``cpu_cores`` give the shim's cycle and CAN threads SCHED_FIFO priority
@@ -30,6 +31,7 @@ from youbot_fdi.nodes.common import (declare_settings, health_to_diagnostics,
                                      now_seconds, SENSOR_QOS, seconds_to_stamp, spin_nodes,
                                      STREAM_QOS)
 from youbot_fdi.tmcm.driver import BaseDriver, CommandKind, DriverSettings
+from youbot_fdi.tmcm.tmcl import TmclCommand
 from youbot_fdi.tmcm.transport import open_bus
 from youbot_fdi.timing import apply_scheduling, parse_cores
 from youbot_fdi.topics import DIAGNOSTICS, JOINT_STATES, WHEEL_COMMANDS
@@ -103,7 +105,7 @@ class DriverShimNode(Node):
             if failed:
                 self.get_logger().warning(f'modules did not answer configuration: {failed}')
         self.driver.cycle()
-        self.report_stops()
+        self.report_mailbox()
         if self.driver.timeout_recoveries > self._recoveries_told:
             self._recoveries_told = self.driver.timeout_recoveries
             self.get_logger().warning(
@@ -128,9 +130,11 @@ class DriverShimNode(Node):
         self.diag_pub.publish(array)
 
     def on_switch_on(self, _request, response):
-        silent = self.driver.motors_on()
-        response.success = not silent
-        response.message = 'motors on' if not silent else f'motors on; no answer from {silent}'
+        """Answers at once: the modules' flags are cleared without holding the cycle for their
+        replies; a module that does not answer is logged by :meth:`report_mailbox`."""
+        self.driver.motors_on()
+        response.success = True
+        response.message = 'motors on (a module that does not answer the flags\' clearing is logged)'
         return response
 
     def on_switch_off(self, _request, response):
@@ -140,21 +144,27 @@ class DriverShimNode(Node):
 
     def on_motor_off(self, name, response):
         """Answers at once (the stop frame sent, 0 mA from the next cycle): waiting for the
-        module's reply here would hold the cycle. The reply is logged by :meth:`on_cycle`."""
+        module's reply here would hold the cycle. The reply is logged by :meth:`report_mailbox`."""
         self.driver.motor_off(name)
         response.success = True
         response.message = f'{name}: motor off (stop frame sent, 0 mA from the next cycle, coasting)'
         self.get_logger().warning(response.message)
         return response
 
-    def report_stops(self):
-        """Log what the modules answered to the motor-off requests settled since the last cycle."""
-        for name, confirmed in self.driver.stop_outcomes():
-            if confirmed:
-                self.get_logger().info(f'{name}: the module confirmed the stop')
-            else:
-                self.get_logger().warning(f'{name}: the module did not confirm the stop within '
-                                          f'{self.settings.tmcl_timeout:g} s; 0 mA stands')
+    def report_mailbox(self):
+        """Log what the modules answered to the requests the services sent without waiting
+        (settled since the last cycle)."""
+        for outcome in self.driver.mailbox_outcomes():
+            stopping = outcome.command is TmclCommand.MST
+            if stopping and outcome.ok:
+                self.get_logger().info(f'{outcome.wheel}: the module confirmed the stop')
+            elif stopping:
+                self.get_logger().warning(f'{outcome.wheel}: the module did not confirm the stop '
+                                          f'within {self.settings.tmcl_timeout:g} s; 0 mA stands')
+            elif not outcome.ok:
+                self.get_logger().warning(
+                    f'{outcome.wheel}: the module did not confirm clearing its flags within '
+                    f'{self.settings.tmcl_timeout:g} s: a timeout or I²t flag may still hold it')
 
     def close(self):
         self.driver.close()

@@ -58,6 +58,17 @@ SAME_INSTANT_SHARE = 0.5
 CLOSED_CYCLES_KEPT = 16
 
 
+@dataclass(frozen=True)
+class MailboxOutcome:
+    """What a module answered to a TMCL request sent without waiting (:meth:`BaseDriver.motor_off`,
+    :meth:`BaseDriver.motors_on`)."""
+
+    wheel: str
+    command: TmclCommand
+    answered: bool  # a reply came within ``tmcl_timeout``
+    ok: bool  # and its status was success
+
+
 class CommandKind(str, enum.Enum):
     """What ``/wheel_commands`` carries."""
 
@@ -233,7 +244,8 @@ class BaseDriver:
         self._command_stamp = -np.inf
         self.motors_enabled = True
         self.motors_off_wheels = set()  # wheel indices switched off one by one (motor_off)
-        self._stops_pending = {}  # wheel index -> driver-clock time its MST went out [s]
+        #: (wheel index, TmclCommand) -> driver-clock time an unwaited request went out [s]
+        self._unanswered = {}
         self.cycle_count = 0
         self._sent_at = {}  # cycle counter -> driver-clock time its commands went out
         self._clock_offset = None  # driver clock - module clock [s], tracked slowly
@@ -513,42 +525,52 @@ class BaseDriver:
         return sorted(set(failed) | set(self.clear_flags()))
 
     def motors_on(self):
-        """Enable motion commands (every wheel) and clear the modules' sticky flags; returns
-        silent wheels."""
+        """Enable motion commands (every wheel) and clear the modules' sticky flags (timeout and
+        I²t), not waited for (as :meth:`motor_off`); :meth:`mailbox_outcomes` reports a module
+        that did not answer."""
         self.motors_enabled = True
         self.motors_off_wheels.clear()
-        return self.clear_flags()
+        for index in range(self.n_wheels):
+            for parameter in (AxisParameter.CLEAR_TIMEOUT_FLAG, AxisParameter.CLEAR_I2T_FLAG):
+                self._send_unwaited(index, TmclCommand.SAP, parameter, 1)
 
     def motor_off(self, wheel):
         """Switch one wheel's motor off (a fault reaction): TMCL MST over the mailbox, the path
         that still reaches the motor when the module's cyclic set-point misbehaves (a runaway),
-        and 0 mA from the next cycle on until :meth:`motors_on`.
-
-        The reply is not waited for: the mailbox and the process data are separate channels, and
-        a caller on the cycle's thread (the shim's executor) waiting up to ``tmcl_timeout`` for
-        it would hold the cycle, so /joint_states would stop and the modules' controller timeout
-        would trip, just as a fault is being handled. :meth:`stop_outcomes` reports the reply."""
+        and 0 mA from the next cycle on until :meth:`motors_on`; the reply is not waited for
+        (:meth:`_send_unwaited`)."""
         index = wheel if isinstance(wheel, int) else self.wheel_names.index(wheel)
-        module = self.settings.module_ids[index]
         with self._lock:
             self.motors_off_wheels.add(index)
-            self._replies.pop((module, int(TmclCommand.MST)), None)
-            self._stops_pending[index] = self.clock()
-        self.transport.send(*TmclRequest(module, int(TmclCommand.MST), 0, 0, 0).to_can())
+        self._send_unwaited(index, TmclCommand.MST, 0, 0)
 
-    def stop_outcomes(self, now=None):
-        """The motor-off requests settled since the last call: ``(wheel name, confirmed)`` for
-        each whose module replied (confirmed if the reply is ok), or did not within
-        ``tmcl_timeout`` (not confirmed; its 0 mA command stands either way)."""
+    def _send_unwaited(self, index, command, type_, value):
+        """Send wheel ``index``'s module a TMCL request without waiting for its reply, which
+        :meth:`mailbox_outcomes` reports.
+
+        Why: the mailbox and the process data are separate channels, and a caller on the cycle's
+        thread (the shim's service callbacks share its executor) waiting up to ``tmcl_timeout``
+        per request would hold the cycle: /joint_states would pause (the base's ``comm_loss``
+        to the FDI) and the modules' controller timeout would trip, just as a fault is handled
+        or the motors come back. The cycle's own controller-timeout clears go out unwaited too."""
+        module = self.settings.module_ids[index]
+        with self._lock:
+            self._replies.pop((module, int(command)), None)
+            self._unanswered[(index, TmclCommand(command))] = self.clock()
+        self.transport.send(*TmclRequest(module, int(command), int(type_), 0, int(value)).to_can())
+
+    def mailbox_outcomes(self, now=None):
+        """The unwaited requests (:meth:`_send_unwaited`) settled since the last call, as
+        :class:`MailboxOutcome` records: answered (ok or not), or not within ``tmcl_timeout``."""
         now = self.clock() if now is None else now
         settled = []
         with self._lock:
-            for index, sent_at in list(self._stops_pending.items()):
-                reply = self._replies.pop((self.settings.module_ids[index], int(TmclCommand.MST)),
-                                          None)
+            for (index, command), sent_at in list(self._unanswered.items()):
+                reply = self._replies.pop((self.settings.module_ids[index], int(command)), None)
                 if reply is not None or now - sent_at > self.settings.tmcl_timeout:
-                    del self._stops_pending[index]
-                    settled.append((self.wheel_names[index], reply is not None and reply.ok))
+                    del self._unanswered[(index, command)]
+                    settled.append(MailboxOutcome(self.wheel_names[index], command,
+                                                  reply is not None, reply is not None and reply.ok))
         return settled
 
     def motors_off(self):
