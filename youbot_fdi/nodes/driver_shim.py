@@ -159,12 +159,14 @@ class DriverShimNode(Node):
             if stopping and outcome.ok:
                 self.get_logger().info(f'{outcome.wheel}: the module confirmed the stop')
             elif stopping:
-                self.get_logger().warning(f'{outcome.wheel}: the module did not confirm the stop '
-                                          f'within {self.settings.tmcl_timeout:g} s; 0 mA stands')
+                said = ('refused the stop' if outcome.answered else
+                        f'did not confirm the stop within {self.settings.tmcl_timeout:g} s')
+                self.get_logger().warning(f'{outcome.wheel}: the module {said}; 0 mA stands')
             elif not outcome.ok:
-                self.get_logger().warning(
-                    f'{outcome.wheel}: the module did not confirm clearing its flags within '
-                    f'{self.settings.tmcl_timeout:g} s: a timeout or I²t flag may still hold it')
+                said = ('refused clearing its flags' if outcome.answered else
+                        f'did not answer the clearing of its flags within {self.settings.tmcl_timeout:g} s')
+                self.get_logger().warning(f'{outcome.wheel}: the module {said}: a timeout or I²t '
+                                          'flag may still hold it')
 
     def close(self):
         self.driver.close()
