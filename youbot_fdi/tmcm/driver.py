@@ -56,6 +56,8 @@ MAX_REALTIME_PRIORITY = 99  # SCHED_FIFO priorities are 1..99 on Linux
 SAME_INSTANT_SHARE = 0.5
 #: Closed cycle numbers remembered, so that a late answer is told from a new cycle's first one.
 CLOSED_CYCLES_KEPT = 16
+#: The modules' sticky flags a switch-on clears (SAP value 1): the controller timeout and I²t.
+STICKY_FLAG_CLEARS = (AxisParameter.CLEAR_TIMEOUT_FLAG, AxisParameter.CLEAR_I2T_FLAG)
 
 
 @dataclass(frozen=True)
@@ -490,14 +492,21 @@ class BaseDriver:
             return self._latest
 
     # ------------------------------------------------------------------ TMCL client
-    def request(self, wheel, command, type_, value=0, motor=0):
-        """Send a TMCL request to one wheel's module and wait for the reply (or None on timeout)."""
-        index = wheel if isinstance(wheel, int) else self.wheel_names.index(wheel)
+    def _send_request(self, index, command, type_, value=0, motor=0):
+        """Send wheel ``index``'s module a TMCL request, any older reply to the same command
+        dropped first (what comes now answers this one); returns the reply's key. Call without
+        the lock."""
         module = self.settings.module_ids[index]
         key = (module, int(command))
         with self._reply_ready:
             self._replies.pop(key, None)
         self.transport.send(*TmclRequest(module, int(command), int(type_), motor, int(value)).to_can())
+        return key
+
+    def request(self, wheel, command, type_, value=0, motor=0):
+        """Send a TMCL request to one wheel's module and wait for the reply (or None on timeout)."""
+        index = wheel if isinstance(wheel, int) else self.wheel_names.index(wheel)
+        key = self._send_request(index, command, type_, value, motor)
         with self._reply_ready:
             arrived = self._reply_ready.wait_for(lambda: key in self._replies,
                                                  self.settings.tmcl_timeout)
@@ -507,7 +516,7 @@ class BaseDriver:
         """Clear the timeout and I²t flags of every module; returns the wheels that did not answer."""
         silent = []
         for index, name in enumerate(self.wheel_names):
-            for parameter in (AxisParameter.CLEAR_TIMEOUT_FLAG, AxisParameter.CLEAR_I2T_FLAG):
+            for parameter in STICKY_FLAG_CLEARS:
                 reply = self.request(index, TmclCommand.SAP, parameter, 1)
                 if reply is None or not reply.ok:
                     silent.append(name)
@@ -531,7 +540,7 @@ class BaseDriver:
         self.motors_enabled = True
         self.motors_off_wheels.clear()
         for index in range(self.n_wheels):
-            for parameter in (AxisParameter.CLEAR_TIMEOUT_FLAG, AxisParameter.CLEAR_I2T_FLAG):
+            for parameter in STICKY_FLAG_CLEARS:
                 self._send_unwaited(index, TmclCommand.SAP, parameter, 1)
 
     def motor_off(self, wheel):
@@ -553,15 +562,15 @@ class BaseDriver:
         per request would hold the cycle: /joint_states would pause (the base's ``comm_loss``
         to the FDI) and the modules' controller timeout would trip, just as a fault is handled
         or the motors come back. The cycle's own controller-timeout clears go out unwaited too."""
-        module = self.settings.module_ids[index]
-        with self._lock:
-            self._replies.pop((module, int(command)), None)
+        self._send_request(index, command, type_, value)
+        with self._lock:  # after the stale reply was dropped: what comes now answers this one
             self._unanswered[(index, TmclCommand(command))] = self.clock()
-        self.transport.send(*TmclRequest(module, int(command), int(type_), 0, int(value)).to_can())
 
     def mailbox_outcomes(self, now=None):
         """The unwaited requests (:meth:`_send_unwaited`) settled since the last call, as
         :class:`MailboxOutcome` records: answered (ok or not), or not within ``tmcl_timeout``."""
+        if not self._unanswered:  # nearly every cycle: nothing sent, no lock, no clock read
+            return []
         now = self.clock() if now is None else now
         settled = []
         with self._lock:
