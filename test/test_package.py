@@ -161,3 +161,49 @@ def test_imports_run_downward():
                      else [a.name for a in node.names] if isinstance(node, ast.Import) else [])
             offenders += [f'{"/".join(relative)}: {n}' for n in names if n.startswith(forbidden)]
     assert offenders == []
+
+
+def node_entry_points():
+    """The installed console scripts that start nodes (every one but the ``youbot-fdi`` CLI)."""
+    from importlib.metadata import entry_points
+    return sorted((point for point in entry_points(group='console_scripts')
+                   if point.value.startswith('youbot_fdi.nodes.')), key=lambda point: point.name)
+
+
+def test_every_node_executable_answers_help_without_starting_ros(capsys):
+    """``ros2 run youbot_fdi <node> --help`` prints what the node does and how it is configured,
+    and exits 0 without initialising ROS (before this, it started the node)."""
+    import importlib
+    import rclpy
+    points = node_entry_points()
+    assert {'driver_shim', 'decision', 'youbot_fdi_suite'} <= {point.name for point in points}
+    for point in points:
+        module = importlib.import_module(point.value.split(':')[0])
+        assert point.load()([point.name, '--help']) == 0, point.name
+        out = capsys.readouterr().out
+        assert f'ros2 run youbot_fdi {point.name} [--ros-args' in out, point.name
+        described = point.load() if module.__name__.endswith('composed') else module
+        assert described.__doc__.strip().splitlines()[0] in out, point.name
+        assert not rclpy.ok()
+    # A composed executable describes each node it runs.
+    suite = next(point for point in points if point.name == 'youbot_fdi_suite')
+    suite.load()(['youbot_fdi_suite', '-h'])
+    out = capsys.readouterr().out
+    for name in ('``kinematics_bridge`` node', '``observer`` node', '``decision`` node'):
+        assert name in out
+
+
+def test_help_flag_after_ros_args_is_left_to_rclpy():
+    from youbot_fdi.nodes.common import asks_for_help
+    assert asks_for_help(['decision', '--help', '--ros-args', '-p', 'x:=1'])
+    assert not asks_for_help(['decision', '--ros-args', '--help'])
+    assert not asks_for_help(['decision'])
+
+
+def test_installed_node_script_prints_help():
+    script = Path(sys.executable).parent / 'decision'
+    if not script.exists():
+        pytest.skip('the package is not installed into this interpreter (make venv installs it)')
+    result = subprocess.run([str(script), '--help'], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert '/youbot_fdi/faults' in result.stdout

@@ -26,10 +26,10 @@ from sensor_msgs.msg import JointState
 import rclpy
 
 from youbot_fdi.nodes.common import (EXECUTOR_VARIABLE, executor_kind, freeze_startup_heap,
-                                     keep_discovery_local, make_executor, ros_init, SENSOR_QOS,
-                                     shutdown_nodes, spin_until_stopped, stamp_to_seconds,
-                                     stop_node_processes, STREAM_QOS)
-from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
+                                     keep_discovery_local, make_executor, node_module, ros_init,
+                                     SENSOR_QOS, shutdown_nodes, spin_until_stopped,
+                                     stamp_to_seconds, stop_node_processes, STREAM_QOS)
+from youbot_fdi.nodes.composed import LAYOUTS, node_name
 from youbot_fdi.nodes.conversions import joint_state
 from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.topics import JOINT_STATES, WHEEL_COMMANDS

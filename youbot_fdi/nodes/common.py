@@ -355,13 +355,54 @@ def ros_init(kind, args=None, context=None):
         rclpy.init(args=args, context=context)
 
 
-def spin_nodes(factories, args=None):
+def node_module(factory):
+    """The module of a node factory (a Node class or a partial of one): ``python -m`` runs it as
+    its own process."""
+    return getattr(factory, 'func', factory).__module__
+
+
+#: Arguments asking for the usage text instead of a node (before ``--ros-args``).
+HELP_FLAGS = ('-h', '--help')
+NODE_USAGE = f"""\
+Usage: ros2 run youbot_fdi {{executable}} [--ros-args -p NAME:=VALUE ... --params-file FILE]
+
+Parameters: the defaults and the reasoning behind them are in config/ (docs/nodes.md lists which
+file each node reads); on a running node `ros2 param list` and `ros2 param describe` show them.
+Environment: {EXECUTOR_VARIABLE}={'|'.join(EXECUTORS)} picks the executor (default single).
+Stop with Ctrl-C (SIGINT) or SIGTERM."""
+
+
+def asks_for_help(args):
+    """Whether the command line ``args`` (``sys.argv`` when None) asks for the usage text: a
+    :data:`HELP_FLAGS` argument before ``--ros-args`` (what follows it is rclpy's)."""
+    args = sys.argv if args is None else args
+    own = args[1:args.index('--ros-args')] if '--ros-args' in args else args[1:]
+    return any(arg in HELP_FLAGS for arg in own)
+
+
+def node_help(factories, executable, description=None):
+    """The usage text of an executable running ``factories``: its ``description`` (several nodes
+    in one process), each node module's description (its docstring), then how parameters and the
+    environment are given."""
+    modules = dict.fromkeys(node_module(factory) for factory in factories)
+    parts = [description] if description else []
+    parts += [sys.modules[module].__doc__.strip() for module in modules]
+    return '\n\n'.join(parts + [NODE_USAGE.format(executable=executable)])
+
+
+def spin_nodes(factories, args=None, description=None):
     """Create nodes with ``factories`` (callables -> Node) and spin them in one executor (of the
     kind :data:`EXECUTOR_VARIABLE` names).
 
     The canonical Jazzy main: try/finally, KeyboardInterrupt is a normal stop,
     ExternalShutdownException exits 1, a configuration error exits 2 with a one-line reason.
+    ``-h``/``--help`` prints :func:`node_help` (with ``description``) and exits 0 without
+    starting ROS.
     """
+    if asks_for_help(args):
+        argv = sys.argv if args is None else args
+        print(node_help(factories, os.path.basename(argv[0]), description))
+        return 0
     try:
         kind = executor_kind()
     except ConfigError as err:

@@ -9,7 +9,7 @@ fused with the residual generator (one node fewer, one message fewer per sample:
 from functools import partial
 import sys
 
-from youbot_fdi.nodes.common import spin_nodes
+from youbot_fdi.nodes.common import node_module, spin_nodes
 from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.nodes.driver_shim import DriverShimNode
 from youbot_fdi.nodes.kinematics_bridge import KinematicsBridgeNode
@@ -25,12 +25,6 @@ LAYOUTS = {
 FDI_NODES = LAYOUTS['separate']
 
 
-def node_module(factory):
-    """The module of a node factory (a Node class or a partial of one): ``python -m`` runs it as
-    its own process."""
-    return getattr(factory, 'func', factory).__module__
-
-
 def node_name(factory):
     """The ROS node name a factory's node takes (its module's ``NODE_NAME``)."""
     return sys.modules[node_module(factory)].NODE_NAME
@@ -38,17 +32,17 @@ def node_name(factory):
 
 def sim_main(args=None):
     """Virtual youBot + driver shim in one process."""
-    return spin_nodes([VirtualYoubotNode, DriverShimNode], args=args)
+    return spin_nodes([VirtualYoubotNode, DriverShimNode], args=args, description=sim_main.__doc__)
 
 
 def fdi_main(args=None):
     """The FDI nodes (kinematics bridge, observer, residual generator, decision) in one process."""
-    return spin_nodes(list(LAYOUTS['separate']), args=args)
+    return spin_nodes(list(LAYOUTS['separate']), args=args, description=fdi_main.__doc__)
 
 
 def fused_main(args=None):
     """The FDI nodes with the observer fused with the residual generator, in one process."""
-    return spin_nodes(list(LAYOUTS['fused']), args=args)
+    return spin_nodes(list(LAYOUTS['fused']), args=args, description=fused_main.__doc__)
 
 
 if __name__ == '__main__':

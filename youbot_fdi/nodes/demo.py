@@ -32,8 +32,9 @@ from youbot_fdi.app.eventlog import EventLog
 from youbot_fdi.faults import Level
 from youbot_fdi.model.kinematics import tracking_rms
 from youbot_fdi.nodes.common import (freeze_startup_heap, keep_discovery_local, LATCHED_QOS,
-                                     now_seconds, SENSOR_QOS, shutdown_nodes, stop_node_processes)
-from youbot_fdi.nodes.composed import LAYOUTS, node_module, node_name
+                                     node_module, now_seconds, SENSOR_QOS, shutdown_nodes,
+                                     stop_node_processes)
+from youbot_fdi.nodes.composed import LAYOUTS, node_name
 from youbot_fdi.nodes.conversions import event_from_status, reaction_from_status
 from youbot_fdi.nodes.decision import DecisionNode
 from youbot_fdi.nodes.driver_shim import DriverShimNode
