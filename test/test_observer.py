@@ -426,3 +426,50 @@ def test_a_command_that_comes_after_samples_it_was_in_force_for_is_counted_late(
     np.testing.assert_allclose(prediction.from_commands, model.kinematics.drive_signs * speeds)
     following = observer.update(JointSample(0.05, np.zeros(4), speeds, np.zeros(4)))
     assert not mask_wheels(following.resynced, 4).any()
+
+
+def test_a_wheels_coulomb_share_spans_what_its_identified_levels_allow(model):
+    """``_share_interval``: at 2 rad/s (the Coulomb level saturated) a wheel of F_c = 0.05 +- 0.02
+    N·m and viscous 0.035 +- 0.01 N·m·s/rad has the share 0.05 / 0.12; two standard deviations
+    each way, the parts moving apart: (0.05 - 0.04) / (0.01 + 0.055 x 2) = 1/12 and
+    (0.05 + 0.04) / (0.09 + 0.015 x 2) = 3/4. A wheel without a stated uncertainty, and a model
+    without an identification, keep the point."""
+    from dataclasses import replace as replaced
+    from youbot_fdi.fdi.observer import ModelObserver, SHARE_INTERVAL_SD
+    from youbot_fdi.model.profile import PlatformModel
+    assert SHARE_INTERVAL_SD == 2.0  # the closed forms below take two
+    stated = {f'{name}[{w}]': sd for w in range(3)
+              for name, sd in (('coulomb_friction', 0.02), ('viscous_friction', 0.01))}
+    profile = replaced(model.profile, dynamics=replaced(model.profile.dynamics, coulomb_friction=(0.05,) * 4),
+                       identification={'uncertainty': stated})
+    observer = ModelObserver(PlatformModel(profile), FdiSettings())
+    speed = np.array([[2.0, -2.0, 2.0, 2.0]])
+    viscous = observer.friction * speed
+    friction = viscous + 0.05 * np.sign(speed)
+    low, high = observer._share_interval(speed, viscous, friction)
+    point = 0.05 / 0.12
+    np.testing.assert_allclose(low, [[1 / 12, 1 / 12, 1 / 12, point]], rtol=1e-9)
+    np.testing.assert_allclose(high, [[0.75, 0.75, 0.75, point]], rtol=1e-9)
+    bare = ModelObserver(PlatformModel(replaced(profile, identification=None)), FdiSettings())
+    low, high = bare._share_interval(speed, viscous, friction)
+    np.testing.assert_allclose(low, np.full((1, 4), point))
+    np.testing.assert_allclose(high, low)
+
+
+def test_a_wheel_whose_split_calibration_could_not_tell_may_stand_off_a_new_floor_by_it(model):
+    """``_load_factor`` with share intervals: voters a quarter Coulomb read 2 (their Coulomb part
+    fivefold, gap 4); a wheel of share 0.25 whose identified levels allow up to 0.75 may stand
+    0.5 x 4 = 2 off the factor, one allowed down to 0.1 (0.15 below them) 0.6; on the calibrated
+    floor (every ratio 1) the interval allows nothing."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    observer = ModelObserver(model, FdiSettings())
+    friction = np.array([0.2, 0.2, 0.2, 0.0])
+    row = np.concatenate([2.0 * friction, friction, 0.75 * friction])[None]
+    share = np.full((1, 4), 0.25)
+    _, spread = observer._load_factor(row, 1.0, share, np.array([[0.25, 0.25, 0.25, 0.75]]))
+    np.testing.assert_allclose(spread, [[0.0, 0.0, 0.0, 2.0]], atol=1e-12)
+    _, spread = observer._load_factor(row, 1.0, np.array([[0.25, 0.25, 0.25, 0.1]]), share)
+    np.testing.assert_allclose(spread, [[0.0, 0.0, 0.0, 0.6]], atol=1e-12)
+    calibrated = np.concatenate([friction, friction, 0.75 * friction])[None]
+    _, spread = observer._load_factor(calibrated, 1.0, share, np.array([[0.25, 0.25, 0.25, 0.75]]))
+    np.testing.assert_allclose(spread, np.zeros((1, 4)), atol=1e-12)
