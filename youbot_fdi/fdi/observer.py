@@ -999,7 +999,8 @@ class ModelObserver:
     def _load_factor(self, smoothed, previous, share, share_high=None):
         """The platform-wide load factor (N,) and each wheel's load spread (N, n), the larger of
         :func:`load_spread` and :func:`split_spread`, from the smoothed (load part; friction; its
-        viscous part) (N, 3n) and the wheels' Coulomb shares ``share`` (N, n) now. The factor is
+        viscous part) (N, 3n) and the wheels' Coulomb shares ``share`` (N, n) now (with
+        ``share_high``, the interval from it to that: :meth:`_share_interval`). The factor is
         the median of the voting wheels' ratios, at any size (a floor or payload three times the
         calibration's is shared as much as one ten percent off). A median of at least
         ``MIN_LOAD_VOTES`` wheels is moved by no single wheel (a fault stays that wheel's), and
