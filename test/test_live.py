@@ -1,5 +1,6 @@
 """End to end through real rclpy topics: the live demo's nodes, and live against offline replay."""
 import json
+from pathlib import Path
 
 import pytest
 
@@ -184,6 +185,7 @@ def test_reactions_act_through_the_topics(fault, wheel):
                     react=True)
     run, stops = in_fresh_process(_reacting_demo, plan)
     assert {e.wheel for e in alarms(run.events)} == {wheel}
+    assert run.node_logs is None, run.node_exits  # the processes stopped cleanly: logs removed
     # The reaction is what is tested here (naming: test_fdi.py). A friction and a torque loss are
     # both a torque that does not fit the wheel's speed, told apart by which of current or speed
     # explains it better: in an 8 s drive either name may stand (same reaction, degrade).
@@ -222,6 +224,24 @@ def test_demo_plan_carries_fault_magnitudes_and_bridge_limits():
     assert DemoPlan(SCRIPT, None, 'wheel_joint_fl', 1.0).bridge_parameters() == {}
     with pytest.raises(ConfigError, match='torque_loss_gain'):
         VirtualBaseSettings(torque_loss_gain=1.5).validate()
+
+
+def test_node_logs_are_kept_only_where_a_process_did_not_stop_cleanly(tmp_path):
+    """The separate layout's log folder: removed after a finished run whose processes exited 0
+    (one per run would pile up in the temporary directory), kept when one exited otherwise or
+    the run did not finish."""
+    from youbot_fdi.nodes.demo import kept_node_logs
+    folders = []
+    for name in ('clean', 'killed', 'unfinished'):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / 'decision.log').write_text('...')
+        folders.append(str(folder))
+    assert kept_node_logs(folders[0], {'observer': 0, 'decision': 0}, finished=True) is None
+    assert kept_node_logs(folders[1], {'observer': 0, 'decision': -9}, finished=True) == folders[1]
+    assert kept_node_logs(folders[2], {'observer': 0}, finished=False) == folders[2]
+    assert [Path(f).exists() for f in folders] == [False, True, True]
+    assert kept_node_logs(None, {}, finished=True) is None  # one process: no folder
 
 
 def test_events_before_the_drive_are_kept_apart_and_logged(tmp_path):

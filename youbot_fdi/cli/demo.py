@@ -174,6 +174,9 @@ def run(args):
         print('  before the drive, while the nodes started (not counted above): '
               + ', '.join(f'{getattr(e, "action", None) or e.level} {e.wheel or "base"}: {e.fault}'
                           for e in run.before_drive))
+    if run.node_logs:
+        print(f'  FDI node logs kept in {run.node_logs}: a process did not stop cleanly '
+              f'(exit codes {run.node_exits})')
     if args.summary:
         write_summary(args.summary, args, run, alarms, tracking)
         print(f'  summary: {args.summary}')

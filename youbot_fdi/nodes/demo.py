@@ -9,10 +9,11 @@ The FDI nodes run in the chosen layout (:data:`LAYOUT_CHOICES`): ``separate`` (d
 each as its own process, as ``ros2 run`` would; ``composed`` runs them in this process and
 executor; ``fused`` the same with the observer computing the residuals itself.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import gc
 import os
 from pathlib import Path
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -296,6 +297,10 @@ class DemoRun:
     shim: dict = None
     #: the same figures from the shim's start to the drive's (the FDI nodes connecting)
     shim_startup: dict = None
+    #: the FDI node processes' log folder, kept because a process did not stop cleanly (its
+    #: exit codes in ``node_exits``); None: no processes, or removed after a clean stop
+    node_logs: str = None
+    node_exits: dict = None
 
     def tracking_error(self, since):
         """RMS body-velocity tracking error from ``since`` [s] to the end: (linear [m/s],
@@ -334,7 +339,7 @@ def run_demo(plan, events_path=None, max_wall_time=None):
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
     channel = [Parameter('can_channel', value=f'demo-{uuid.uuid4()}')]
-    nodes, processes = [], []
+    nodes, processes, log_dir, finished = [], [], None, False
     log = EventLog(events_path) if events_path else None
     try:
         base_node = VirtualYoubotNode(context=context, parameter_overrides=channel + [
@@ -349,8 +354,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             processes = start_node_processes(factories, log_dir, overrides)
             waits_for = [node_name(f) for f in factories]
             if plan.console:
-                print(f'FDI nodes in {len(processes)} processes (logs: {log_dir}); waiting for '
-                      f'them on the graph ...', flush=True)
+                print(f'FDI nodes in {len(processes)} processes (logs: {log_dir}, removed after a '
+                      f'clean stop); waiting for them on the graph ...', flush=True)
         else:
             nodes += [factory(context=context, parameter_overrides=[
                 Parameter(name, value=value)
@@ -376,7 +381,8 @@ def run_demo(plan, events_path=None, max_wall_time=None):
                     msg = f'an FDI node process ended at start (logs: {log_dir})'
                     raise RuntimeError(msg)
             if not done():
-                msg = f'{what} within {PROCESS_START_TIMEOUT:g} s'
+                msg = f'{what} within {PROCESS_START_TIMEOUT:g} s' + (
+                    f' (logs: {log_dir})' if log_dir else '')
                 raise RuntimeError(msg)
 
         # The base and its driver run once the FDI node processes are on the graph: their start
@@ -393,12 +399,27 @@ def run_demo(plan, events_path=None, max_wall_time=None):
             executor.spin_once(timeout_sec=0.01)
         for _ in range(20):  # deliver the last fault messages
             executor.spin_once(timeout_sec=0.01)
-        return DemoRun(list(driver.events), driver.injected_at, driver.start,
-                       list(driver.reactions), list(driver.tracking), list(driver.before_drive),
-                       shim_figures(shim.driver), startup)
+        run = DemoRun(list(driver.events), driver.injected_at, driver.start,
+                      list(driver.reactions), list(driver.tracking), list(driver.before_drive),
+                      shim_figures(shim.driver), startup)
+        finished = True
     finally:
         stop_node_processes(processes)
         shutdown_nodes(executor, nodes, context)
         gc.unfreeze()  # a caller that runs demos in turn gets this one's objects collected
         if log is not None:
             log.close()
+        exits = {node_name(f): p.returncode for f, p in zip(factories, processes)}
+        log_dir = kept_node_logs(log_dir, exits, finished)
+    return replace(run, node_logs=log_dir, node_exits=exits if log_dir else None)
+
+
+def kept_node_logs(log_dir, exits, finished):
+    """The node processes' log folder ``log_dir`` if it is worth keeping, else None (removed):
+    kept where the run did not finish or a process's exit code in ``exits`` {node: code} is not
+    0 (a clean stop). A clean run's logs say nothing its summary does not, and a folder per run
+    left in the temporary directory adds up."""
+    if log_dir is None or not finished or any(exits.values()):
+        return log_dir
+    shutil.rmtree(log_dir, ignore_errors=True)
+    return None
