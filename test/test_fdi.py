@@ -340,7 +340,9 @@ def test_identify_and_replay_on_recordings_from_an_independent_simulator(tmp_pat
         assert alarms, f'{fault} not detected'
         assert {e.wheel for e in alarms} == {name}
         assert settled(alarms) == fault
-        assert 0.0 <= alarms[0].stamp - (start + at) <= 0.12  # 50 Hz: a few samples
+        # 50 Hz: a few samples (up to 7: the friction split this recording leaves loose widens
+        # the torque bounds at a factor near 1; docs/fdi.md, "The split's uncertainty")
+        assert 0.0 <= alarms[0].stamp - (start + at) <= 0.14
 
 
 def test_replay_shows_progress_on_a_terminal(recordings, tmp_path, monkeypatch):

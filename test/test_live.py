@@ -232,15 +232,20 @@ def test_node_logs_are_kept_only_where_a_process_did_not_stop_cleanly(tmp_path):
     the run did not finish."""
     from youbot_fdi.nodes.demo import kept_node_logs
     folders = []
-    for name in ('clean', 'killed', 'unfinished'):
+    for name in ('clean', 'shut down', 'killed', 'crashed', 'unfinished'):
         folder = tmp_path / name
         folder.mkdir()
-        (folder / 'decision.log').write_text('...')
+        (folder / 'decision.log').write_text('[INFO] ...\n' + (
+            'Traceback (most recent call last):\n' if name == 'crashed' else ''))
         folders.append(str(folder))
+    # exit 1 is rclpy's shutdown on SIGINT (ExternalShutdownException) unless a traceback says
+    # the process crashed
     assert kept_node_logs(folders[0], {'observer': 0, 'decision': 0}, finished=True) is None
-    assert kept_node_logs(folders[1], {'observer': 0, 'decision': -9}, finished=True) == folders[1]
-    assert kept_node_logs(folders[2], {'observer': 0}, finished=False) == folders[2]
-    assert [Path(f).exists() for f in folders] == [False, True, True]
+    assert kept_node_logs(folders[1], {'decision': 1}, finished=True) is None
+    assert kept_node_logs(folders[2], {'observer': 0, 'decision': -9}, finished=True) == folders[2]
+    assert kept_node_logs(folders[3], {'decision': 1}, finished=True) == folders[3]
+    assert kept_node_logs(folders[4], {'decision': 0}, finished=False) == folders[4]
+    assert [Path(f).exists() for f in folders] == [False, False, True, True, True]
     assert kept_node_logs(None, {}, finished=True) is None  # one process: no folder
 
 

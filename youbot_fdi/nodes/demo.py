@@ -409,17 +409,33 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         gc.unfreeze()  # a caller that runs demos in turn gets this one's objects collected
         if log is not None:
             log.close()
-        exits = {node_name(f): p.returncode for f, p in zip(factories, processes)}
+        exits = {node_module(f).rsplit('.', 1)[-1]: p.returncode for f, p in zip(factories, processes)}
         log_dir = kept_node_logs(log_dir, exits, finished)
     return replace(run, node_logs=log_dir, node_exits=exits if log_dir else None)
 
 
+#: The exit code of our mains when rclpy's SIGINT handler shut their context down before the
+#: KeyboardInterrupt reached them (ExternalShutdownException, nodes.common.spin_nodes): a stop
+#: the demo asked for, unless the log shows a traceback (Python's own exit code is 1 too).
+EXTERNAL_SHUTDOWN_EXIT = 1
+
+
 def kept_node_logs(log_dir, exits, finished):
     """The node processes' log folder ``log_dir`` if it is worth keeping, else None (removed):
-    kept where the run did not finish or a process's exit code in ``exits`` {node: code} is not
-    0 (a clean stop). A clean run's logs say nothing its summary does not, and a folder per run
-    left in the temporary directory adds up."""
-    if log_dir is None or not finished or any(exits.values()):
+    kept where the run did not finish or a process did not stop cleanly (``exits`` {log file
+    stem: exit code}; 0, or :data:`EXTERNAL_SHUTDOWN_EXIT` without a traceback in its log, is a
+    clean stop). A clean run's logs say nothing its summary does not, and a folder per run left
+    in the temporary directory adds up."""
+    if log_dir is None:
+        return None
+
+    def clean(stem, code):
+        if code != EXTERNAL_SHUTDOWN_EXIT:
+            return code == 0
+        log = Path(log_dir) / f'{stem}.log'
+        return log.exists() and 'Traceback' not in log.read_text(errors='replace')
+
+    if not finished or not all(clean(stem, code) for stem, code in exits.items()):
         return log_dir
     shutil.rmtree(log_dir, ignore_errors=True)
     return None
