@@ -181,7 +181,7 @@ def beyond_the_others(shares: np.ndarray, share: np.ndarray,
 
 
 #: The identified friction levels' standard deviations the Coulomb share's interval spans each
-#: way (``identify``'s uncertainty; the randomized suite finds 99-100 % of its plants' true
+#: way (``identify``'s uncertainty; the randomized suite finds 98-100 % of its plants' true
 #: viscous and Coulomb levels within two of them).
 SHARE_INTERVAL_SD = 2.0
 
