@@ -185,7 +185,6 @@ def test_reactions_act_through_the_topics(fault, wheel):
                     react=True)
     run, stops = in_fresh_process(_reacting_demo, plan)
     assert {e.wheel for e in alarms(run.events)} == {wheel}
-    assert run.node_logs is None, run.node_exits  # the processes stopped cleanly: logs removed
     # The reaction is what is tested here (naming: test_fdi.py). A friction and a torque loss are
     # both a torque that does not fit the wheel's speed, told apart by which of current or speed
     # explains it better: in an 8 s drive either name may stand (same reaction, degrade).

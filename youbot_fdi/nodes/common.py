@@ -425,14 +425,6 @@ def spin_nodes(factories, args=None, description=None):
     except (ConfigError, FdiError) as err:
         print(f'error: {err}', file=sys.stderr)
         status = 2
-    except RuntimeError as err:
-        if rclpy.ok():
-            raise
-        # rclpy's SIGINT handler shut the context down while the executor took a message: under
-        # load its take can fail on the handle that shutdown destroyed (seen in the demo's
-        # decision process; ros/joint_state_publisher#117). A stop asked for, not a crash.
-        print(f'stopped: rclpy failed a take while shutting down ({err})', file=sys.stderr)
-        status = 1
     finally:
         shutdown_nodes(executor, nodes)
     return status
