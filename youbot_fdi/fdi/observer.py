@@ -1132,13 +1132,14 @@ class ModelObserver:
         prev_torque = shifted(last_torque, torque)
         mean_torque = 0.5 * (torque + prev_torque)
         keep = self._smoothing(dt)
-        drag_shape = (self.model.dynamics.roller_drag_shape(0.5 * (velocity + prev_velocity))
+        mean_speed = 0.5 * (velocity + prev_velocity)  # over the interval [rad/s]
+        drag_shape = (self.model.dynamics.roller_drag_shape(mean_speed)
                       if self._rollers_drag else None)
         smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * np.concatenate(
             self._load_votes(mean_torque, explained, friction, viscous, drag_shape), axis=1),
             self._load[0])
-        load, spread = self._load_factor(smoothed, self._load[1], *self._share_interval(
-            0.5 * (velocity + prev_velocity), viscous, friction))
+        load, spread = self._load_factor(smoothed, self._load[1],
+                                         *self._share_interval(mean_speed, viscous, friction))
         coulomb = coulomb + (load[:, None] - 1.0) * friction  # as in update()
         if self._measures_drag:
             drag, drag_spread = self._shared_drag(

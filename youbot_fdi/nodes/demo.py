@@ -264,9 +264,14 @@ def parameter_text(value):
     return str(value).lower() if isinstance(value, bool) else str(value)
 
 
+def node_log_stem(factory):
+    """The name (without ``.log``) of a node process's log file: its module's last part."""
+    return node_module(factory).rsplit('.', 1)[-1]
+
+
 def start_node_processes(factories, log_dir, parameters=None):
     """Each FDI node as its own process (``python -m <its module>``, as ``ros2 run`` starts it),
-    output to ``log_dir/<module>.log``, with ``parameters`` {module: {name: value}} as
+    output to ``log_dir/<stem>.log`` (:func:`node_log_stem`), with ``parameters`` {module: {name: value}} as
     ``--ros-args -p``; returns the Popen objects."""
     processes = []
     for factory in factories:
@@ -274,7 +279,7 @@ def start_node_processes(factories, log_dir, parameters=None):
         overrides = (parameters or {}).get(module, {})
         arguments = ['--ros-args'] + [a for name, value in overrides.items()
                                       for a in ('-p', f'{name}:={parameter_text(value)}')] if overrides else []
-        log = open(Path(log_dir) / f'{module.rsplit(".", 1)[-1]}.log', 'w')  # noqa: SIM115
+        log = open(Path(log_dir) / f'{node_log_stem(factory)}.log', 'w')  # noqa: SIM115
         start = ['-c', _END_WITH_PARENT] if sys.platform == 'linux' else ['-m']
         processes.append(subprocess.Popen([sys.executable, *start, module, *arguments], stdout=log,
                                           stderr=subprocess.STDOUT, env=dict(os.environ)))
@@ -409,7 +414,7 @@ def run_demo(plan, events_path=None, max_wall_time=None):
         gc.unfreeze()  # a caller that runs demos in turn gets this one's objects collected
         if log is not None:
             log.close()
-        exits = {node_module(f).rsplit('.', 1)[-1]: p.returncode for f, p in zip(factories, processes)}
+        exits = {node_log_stem(f): p.returncode for f, p in zip(factories, processes)}
         log_dir = kept_node_logs(log_dir, exits, finished)
     return replace(run, node_logs=log_dir, node_exits=exits if log_dir else None)
 
