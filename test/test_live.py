@@ -185,6 +185,7 @@ def test_reactions_act_through_the_topics(fault, wheel):
                     react=True)
     run, stops = in_fresh_process(_reacting_demo, plan)
     assert {e.wheel for e in alarms(run.events)} == {wheel}
+    assert run.node_logs is None, run.node_exits  # every process stopped cleanly: logs removed
     # The reaction is what is tested here (naming: test_fdi.py). A friction and a torque loss are
     # both a torque that does not fit the wheel's speed, told apart by which of current or speed
     # explains it better: in an 8 s drive either name may stand (same reaction, degrade).
@@ -231,20 +232,17 @@ def test_node_logs_are_kept_only_where_a_process_did_not_stop_cleanly(tmp_path):
     the run did not finish."""
     from youbot_fdi.nodes.demo import kept_node_logs
     folders = []
-    for name in ('clean', 'shut down', 'killed', 'crashed', 'unfinished'):
+    for name in ('clean', 'killed', 'failed', 'unfinished'):
         folder = tmp_path / name
         folder.mkdir()
-        (folder / 'decision.log').write_text('[INFO] ...\n' + (
-            'Traceback (most recent call last):\n' if name == 'crashed' else ''))
+        (folder / 'decision.log').write_text('[INFO] ...\n')
         folders.append(str(folder))
-    # exit 1 is rclpy's shutdown on SIGINT (ExternalShutdownException) unless a traceback says
-    # the process crashed
+    # our mains exit 0 on SIGINT (nodes.common.stop_on_signals): any other code is kept
     assert kept_node_logs(folders[0], {'observer': 0, 'decision': 0}, finished=True) is None
-    assert kept_node_logs(folders[1], {'decision': 1}, finished=True) is None
-    assert kept_node_logs(folders[2], {'observer': 0, 'decision': -9}, finished=True) == folders[2]
-    assert kept_node_logs(folders[3], {'decision': 1}, finished=True) == folders[3]
-    assert kept_node_logs(folders[4], {'decision': 0}, finished=False) == folders[4]
-    assert [Path(f).exists() for f in folders] == [False, False, True, True, True]
+    assert kept_node_logs(folders[1], {'observer': 0, 'decision': -9}, finished=True) == folders[1]
+    assert kept_node_logs(folders[2], {'decision': 1}, finished=True) == folders[2]
+    assert kept_node_logs(folders[3], {'decision': 0}, finished=False) == folders[3]
+    assert [Path(f).exists() for f in folders] == [False, True, True, True]
     assert kept_node_logs(None, {}, finished=True) is None  # one process: no folder
 
 

@@ -2,6 +2,7 @@
 import os
 from pathlib import Path
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -207,3 +208,25 @@ def test_installed_node_script_prints_help():
     result = subprocess.run([str(script), '--help'], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert '/youbot_fdi/faults' in result.stdout
+
+
+@pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM])
+def test_a_node_stops_on_sigint_or_sigterm_with_exit_0(stop, tmp_path):
+    """Our mains stop on SIGINT (Ctrl-C, the demo's stop) and SIGTERM (a supervisor's) by a flag
+    the spin loop reads, not by rclpy's handlers, which shut the context down from another
+    thread while a take may run (a RuntimeError traceback under load): exit 0, no traceback."""
+    command = [sys.executable, '-m', 'youbot_fdi.nodes.decision']
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                               text=True, env={**os.environ, 'ROS_HOME': str(tmp_path)})
+    try:
+        log = []
+        for line in process.stderr:  # the node logs where its incidents go once it is built
+            log.append(line)
+            if 'incidents:' in line:
+                break
+        process.send_signal(stop)
+        log += process.stderr.readlines()
+        assert process.wait(timeout=30) == 0, ''.join(log)
+    finally:
+        process.kill()
+    assert 'Traceback' not in ''.join(log)

@@ -27,7 +27,7 @@ import rclpy
 
 from youbot_fdi.nodes.common import (EXECUTOR_VARIABLE, executor_kind, freeze_startup_heap,
                                      keep_discovery_local, make_executor, node_module, ros_init,
-                                     SENSOR_QOS, shutdown_nodes, spin_until_stopped,
+                                     SENSOR_QOS, shutdown_nodes, spin_until_stopped, stop_on_signals,
                                      stamp_to_seconds, stop_node_processes, STREAM_QOS)
 from youbot_fdi.nodes.composed import LAYOUTS, node_name
 from youbot_fdi.nodes.conversions import joint_state
@@ -314,16 +314,15 @@ def worker_main(argv=None):
     parser.add_argument('--timings', help='JSON file for {stamp: time.monotonic()} at exit')
     args = parser.parse_args(argv)
     kind = executor_kind()
-    ros_init(kind)
+    stop = stop_on_signals()
+    ros_init()
     node = (TimedDecision() if args.role == 'decision' else
             Relay(args.index, args.source, args.target))
     executor = make_executor(kind)
     executor.add_node(node)
     freeze_startup_heap()
     try:
-        spin_until_stopped(executor, kind)
-    except KeyboardInterrupt:
-        pass
+        spin_until_stopped(executor, stop)
     finally:
         if args.timings:
             Path(args.timings).write_text(json.dumps({repr(k): v for k, v in node.done.items()}))

@@ -309,8 +309,11 @@ EXECUTOR_VARIABLE = 'YOUBOT_FDI_EXECUTOR'
 #: EventsExecutor, which does not rebuild a wait set from every entity on every wake-up (about
 #: half the CPU of our nodes, docs/nodes.md), opt-in: rclpy 7.1's has open crash reports.
 EXECUTORS = ('single', 'events')
-#: Longest wait for work before the events executor's loop looks at its stop flag [s].
-EVENTS_POLL = 0.1
+#: Longest wait for work before the spin loop looks at its stop flag [s]: the longest a stop
+#: asked for by SIGINT or SIGTERM waits on an idle node.
+STOP_POLL = 0.1
+#: The signals that stop our node executables cleanly (exit 0).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def executor_kind():
@@ -331,28 +334,34 @@ def make_executor(kind, context=None):
     return SingleThreadedExecutor(context=context)
 
 
-def spin_until_stopped(executor, kind):
-    """Spin until SIGINT or SIGTERM (KeyboardInterrupt for ``single``, rclpy's own handling).
-    The events executor's ``spin`` does not return on SIGINT in rclpy 7.1 (it spins a core
-    instead), so it is driven one callback at a time, and our own handlers stop the loop."""
-    if kind != 'events':
-        executor.spin()
-        return
+def stop_on_signals():
+    """Install handlers that set, and return, a stop flag on :data:`STOP_SIGNALS`.
+
+    Call before :func:`ros_init`, which installs no rclpy handlers. rclpy's own handlers shut the
+    context down from another thread while the main thread may be inside ``take_message``, which
+    then raises ``RuntimeError: Unable to convert call argument '0'`` (ros/joint_state_publisher#117;
+    2 of about 16 demo runs under load): a crash to anyone reading the log. With a flag the
+    executor finishes the callback it is in, and the nodes and the context are shut down in
+    order by the main's ``finally``.
+    """
     stop = threading.Event()
-    for number in (signal.SIGINT, signal.SIGTERM):
+    for number in STOP_SIGNALS:
         signal.signal(number, lambda *_: stop.set())
+    return stop
+
+
+def spin_until_stopped(executor, stop):
+    """Spin ``executor`` one callback at a time until ``stop`` (:func:`stop_on_signals`) is set;
+    the wait for work is at most :data:`STOP_POLL`, so a signal on an idle node is seen in time.
+    (The events executor's own ``spin`` does not return on SIGINT in rclpy 7.1: it spins a core.)"""
     while not stop.is_set():
-        executor.spin_once(timeout_sec=EVENTS_POLL)
+        executor.spin_once(timeout_sec=STOP_POLL)
 
 
-def ros_init(kind, args=None, context=None):
-    """``rclpy.init`` for an executor of ``kind``: with ``events``, rclpy installs no signal
-    handlers of its own (:func:`spin_until_stopped` does)."""
-    if kind == 'events':
-        from rclpy.signals import SignalHandlerOptions
-        rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
-    else:
-        rclpy.init(args=args, context=context)
+def ros_init(args=None, context=None):
+    """``rclpy.init`` without rclpy's signal handlers (:func:`stop_on_signals` stops the spin)."""
+    from rclpy.signals import SignalHandlerOptions
+    rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
 
 
 def node_module(factory):
@@ -394,8 +403,9 @@ def spin_nodes(factories, args=None, description=None):
     """Create nodes with ``factories`` (callables -> Node) and spin them in one executor (of the
     kind :data:`EXECUTOR_VARIABLE` names).
 
-    The canonical Jazzy main: try/finally, KeyboardInterrupt is a normal stop,
-    ExternalShutdownException exits 1, a configuration error exits 2 with a one-line reason.
+    The canonical Jazzy main: try/finally, SIGINT or SIGTERM is a normal stop (exit 0,
+    :func:`stop_on_signals`), ExternalShutdownException (the context shut down by someone else)
+    exits 1, a configuration error exits 2 with a one-line reason.
     ``-h``/``--help`` prints :func:`node_help` (with ``description``) and exits 0 without
     starting ROS.
     """
@@ -408,7 +418,8 @@ def spin_nodes(factories, args=None, description=None):
     except ConfigError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
-    ros_init(kind, args=args)
+    stop = stop_on_signals()
+    ros_init(args=args)
     nodes = []
     executor = make_executor(kind)
     status = 0
@@ -417,9 +428,7 @@ def spin_nodes(factories, args=None, description=None):
             nodes.append(factory())
             executor.add_node(nodes[-1])
         freeze_startup_heap()
-        spin_until_stopped(executor, kind)
-    except KeyboardInterrupt:
-        pass
+        spin_until_stopped(executor, stop)
     except ExternalShutdownException:
         status = 1
     except (ConfigError, FdiError) as err:

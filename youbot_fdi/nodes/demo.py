@@ -419,28 +419,15 @@ def run_demo(plan, events_path=None, max_wall_time=None):
     return replace(run, node_logs=log_dir, node_exits=exits if log_dir else None)
 
 
-#: The exit code of our mains when rclpy's SIGINT handler shut their context down before the
-#: KeyboardInterrupt reached them (ExternalShutdownException, nodes.common.spin_nodes): a stop
-#: the demo asked for, unless the log shows a traceback (Python's own exit code is 1 too).
-EXTERNAL_SHUTDOWN_EXIT = 1
-
-
 def kept_node_logs(log_dir, exits, finished):
     """The node processes' log folder ``log_dir`` if it is worth keeping, else None (removed):
     kept where the run did not finish or a process did not stop cleanly (``exits`` {log file
-    stem: exit code}; 0, or :data:`EXTERNAL_SHUTDOWN_EXIT` without a traceback in its log, is a
-    clean stop). A clean run's logs say nothing its summary does not, and a folder per run left
-    in the temporary directory adds up."""
+    stem: exit code}; our mains exit 0 on the demo's SIGINT, nodes.common.stop_on_signals). A
+    clean run's logs say nothing its summary does not, and a folder per run left in the
+    temporary directory adds up."""
     if log_dir is None:
         return None
-
-    def clean(stem, code):
-        if code != EXTERNAL_SHUTDOWN_EXIT:
-            return code == 0
-        log = Path(log_dir) / f'{stem}.log'
-        return log.exists() and 'Traceback' not in log.read_text(errors='replace')
-
-    if not finished or not all(clean(stem, code) for stem, code in exits.items()):
+    if not finished or any(code != 0 for code in exits.values()):
         return log_dir
     shutil.rmtree(log_dir, ignore_errors=True)
     return None
