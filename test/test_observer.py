@@ -404,6 +404,32 @@ def test_friction_beyond_the_calibrated_speeds_is_allowed_between_its_extrapolat
     assert ModelObserver(model, FdiSettings())._speed_extrapolation(slow) == 0.0  # no calibration
 
 
+def test_where_calibration_told_the_slope_its_error_times_the_distance_bounds_the_extrapolation(model):
+    """Calibrated at 6 rad/s (the norm) with a viscous slope known to 0.005 N·m·s/rad: at twice
+    the speed each wheel turns 3 rad/s beyond its calibrated point, so the fit may be off by
+    2 x 0.005 x 3 = 0.03 N·m, less than the friction there that lies between the all-Coulomb and
+    all-viscous extrapolations; a slope known to 0.5 keeps that, and a wheel without a stated
+    deviation too."""
+    from dataclasses import replace as replaced
+    from youbot_fdi.fdi.observer import FRICTION_INTERVAL_SD, ModelObserver
+    from youbot_fdi.model.profile import PlatformModel
+    assert FRICTION_INTERVAL_SD == 2.0  # the closed form below takes two
+    direction = np.array([1.0, -1.0, 1.0, -1.0]) / 2.0  # unit norm
+    settings = replace(FdiSettings(), calibrated_speed_range=(6.0, 6.0))
+    fast = direction * 12.0
+
+    def observer(viscous_sd):
+        stated = {f'viscous_friction[{w}]': sd for w, sd in enumerate(viscous_sd) if sd}
+        return ModelObserver(PlatformModel(replaced(model.profile, identification={'uncertainty': stated})),
+                             settings)
+
+    between = ModelObserver(model, settings)._speed_extrapolation(fast)
+    assert np.all(between > 0.03)
+    np.testing.assert_allclose(observer([0.005] * 3 + [0.0])._speed_extrapolation(fast),
+                               [0.03, 0.03, 0.03, between[3]])
+    np.testing.assert_allclose(observer([0.5] * 4)._speed_extrapolation(fast), between)
+
+
 def test_a_command_that_comes_after_samples_it_was_in_force_for_is_counted_late(model):
     """Live, a host behind may deliver a command after samples stamped later than it: those were
     judged without it (a replay of the same recording would not be), which the observer counts
@@ -435,9 +461,9 @@ def test_a_wheels_coulomb_share_spans_what_its_identified_levels_allow(model):
     (0.05 + 0.04) / (0.09 + 0.015 x 2) = 3/4. A wheel without a stated uncertainty, and a model
     without an identification, keep the point."""
     from dataclasses import replace as replaced
-    from youbot_fdi.fdi.observer import ModelObserver, SHARE_INTERVAL_SD
+    from youbot_fdi.fdi.observer import ModelObserver, FRICTION_INTERVAL_SD
     from youbot_fdi.model.profile import PlatformModel
-    assert SHARE_INTERVAL_SD == 2.0  # the closed forms below take two
+    assert FRICTION_INTERVAL_SD == 2.0  # the closed forms below take two
     stated = {f'{name}[{w}]': sd for w in range(3)
               for name, sd in (('coulomb_friction', 0.02), ('viscous_friction', 0.01))}
     profile = replaced(model.profile, dynamics=replaced(model.profile.dynamics, coulomb_friction=(0.05,) * 4),
