@@ -208,3 +208,16 @@ def test_the_gain_fits_jacobian_meets_the_secant_of_each_step_and_is_exact_on_a_
     secant.residuals(x1)
     updated = secant(x1)
     assert np.allclose(updated @ (x1 - x0), curved(x1) - curved(x0), atol=1e-12)
+
+
+def test_identify_names_the_wheels_whose_friction_split_it_could_not_tell():
+    """A wheel whose Coulomb (0.05 N·m) or viscous (0.03 N·m·s/rad) friction lies within two
+    standard deviations of 0 is named: 0.05 <= 2 x 0.03, 0.03 <= 2 x 0.02; one known to 0.02 and
+    0.01 is not, nor one without a stated deviation."""
+    from types import SimpleNamespace
+    from youbot_fdi.cli.identify import _split_unknown
+    dynamics = SimpleNamespace(coulomb_friction=(0.05,) * 4, viscous_friction=(0.03,) * 4)
+    deviation = {'coulomb_friction[0]': 0.02, 'viscous_friction[0]': 0.01,
+                 'coulomb_friction[1]': 0.03, 'viscous_friction[1]': 0.01,
+                 'coulomb_friction[2]': 0.02, 'viscous_friction[2]': 0.02}
+    assert _split_unknown(['fl', 'fr', 'bl', 'br'], dynamics, deviation) == ['fr', 'bl']

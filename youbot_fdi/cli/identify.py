@@ -9,6 +9,21 @@ NAME = 'identify'
 
 
 
+def _split_unknown(names, dynamics, deviation):
+    """The wheels (of ``names``) whose identified Coulomb or viscous friction may be 0 within
+    ``FRICTION_INTERVAL_SD`` of its standard deviation ``deviation`` ({parameter: sd}): the
+    recording could not tell one from the other there."""
+    from youbot_fdi.fdi.observer import FRICTION_INTERVAL_SD
+    loose = []
+    for w, name in enumerate(names):
+        parts = (('coulomb_friction', dynamics.coulomb_friction[w]),
+                 ('viscous_friction', dynamics.viscous_friction[w]))
+        if any(f'{part}[{w}]' in deviation and level <= FRICTION_INTERVAL_SD * deviation[f'{part}[{w}]']
+               for part, level in parts):
+            loose.append(name)
+    return loose
+
+
 def _per_hour(rate):
     """An alarm rate [1/h] for people: 'one in N h', or 'never' at 0."""
     if rate <= 0.0:
@@ -56,6 +71,7 @@ def run(args):
     import numpy as np
 
     from youbot_fdi.app.recordings import identify_recording
+    from youbot_fdi.fdi.observer import FRICTION_INTERVAL_SD
     from youbot_fdi.fdi.settings import FdiSettings
     from youbot_fdi.model.profile import load_model, save_profile
     from youbot_fdi.settings import load_settings
@@ -96,6 +112,14 @@ def run(args):
         print(f'  the ± of {", ".join(by_form)} is mostly the friction law\'s form: a wider Coulomb '
               'step or the rollers\' drag explains this recording as well and shares the friction '
               'differently')
+    loose = _split_unknown(profile.platform.names, dyn, sd)
+    if loose:
+        low, high = result.fdi['calibrated_speed_range']
+        print(f'  friction split loose on {", ".join(loose)}: its Coulomb or viscous part may be 0 '
+              f'within {FRICTION_INTERVAL_SD:g} standard deviations (driven at {low:.3g}-{high:.3g} '
+              'rad/s, the wheel speeds\' norm). The bounds allow for either split on other floors '
+              'and speeds, and catch less there; slow driving in the calibration recording (where '
+              'the Coulomb part dominates) pins it down')
     unexcited = result.info.get('unexcited')
     if unexcited:
         print(f'  not excited by this recording (the data narrow them to no less than '
