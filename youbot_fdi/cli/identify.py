@@ -8,7 +8,6 @@ from youbot_fdi.cli.status import DAMAGED
 NAME = 'identify'
 
 
-
 def _split_unknown(names, dynamics, deviation):
     """The wheels (of ``names``) whose identified Coulomb or viscous friction may be 0 within
     ``FRICTION_INTERVAL_SD`` of its standard deviation ``deviation`` ({parameter: sd}): the

@@ -337,12 +337,13 @@ def make_executor(kind, context=None):
 def stop_on_signals():
     """Install handlers that set, and return, a stop flag on :data:`STOP_SIGNALS`.
 
-    Call before :func:`ros_init`, which installs no rclpy handlers. rclpy's own handlers shut the
-    context down from another thread while the main thread may be inside ``take_message``, which
-    then raises ``RuntimeError: Unable to convert call argument '0'`` (ros/joint_state_publisher#117;
-    2 of about 16 demo runs under load): a crash to anyone reading the log. With a flag the
-    executor finishes the callback it is in, and the nodes and the context are shut down in
-    order by the main's ``finally``.
+    Call before :func:`ros_init`, which installs no rclpy handlers. Under rclpy's own handlers
+    (which shut the context down when the signal comes, and raise KeyboardInterrupt wherever the
+    main thread is), ``take_message`` raised ``RuntimeError: Unable to convert call argument
+    '0'`` as the demo's SIGINT came (2 of about 16 separate-layout runs under load;
+    ros/joint_state_publisher#117): a traceback and exit 1, a crash to anyone reading the log,
+    and SIGTERM exited 1 too. With a flag the executor finishes the callback it is in, and the
+    nodes and the context are shut down in order by the main's ``finally``.
     """
     stop = threading.Event()
     for number in STOP_SIGNALS:
