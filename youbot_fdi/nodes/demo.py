@@ -425,9 +425,7 @@ def kept_node_logs(log_dir, exits, finished):
     stem: exit code}; our mains exit 0 on the demo's SIGINT, nodes.common.stop_on_signals). A
     clean run's logs say nothing its summary does not, and a folder per run left in the
     temporary directory adds up."""
-    if log_dir is None:
-        return None
-    if not finished or any(code != 0 for code in exits.values()):
+    if log_dir is None or not finished or any(exits.values()):
         return log_dir
     shutil.rmtree(log_dir, ignore_errors=True)
     return None
