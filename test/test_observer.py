@@ -232,6 +232,26 @@ def test_two_voters_move_the_load_factor_as_far_as_both_agree(model):
     assert float(observer._load_factor(one, 1.7, np.ones((1, 4)))[0][0]) == pytest.approx(1.7)  # held
 
 
+def test_a_wheel_reversing_weighs_its_ratios_by_their_friction_levels_not_their_signs(model):
+    """Closed form: a wheel reading 1.0 of its level -0.4 N·m, then, reversed, 1.2 of +0.3 N·m,
+    the smoothing keeping half of the past: its smoothed ratio is the level-weighted mean,
+    (0.5 x 0.5 x 0.4 x 1.0 + 0.5 x 0.3 x 1.2) / (0.5 x 0.5 x 0.4 + 0.5 x 0.3) = 0.28 / 0.25 =
+    1.12, between the two. Summed with their signs the levels nearly cancel (0.05 N·m) and the
+    ratio is 0.08 / 0.05 = 1.6, beyond both (the randomized suite's seed 15, plant 88: wheels
+    reversing under a heavy payload read -0.01 and 0.06, and a factor of 0.06 took nearly all
+    friction out of the model)."""
+    from youbot_fdi.fdi.observer import ModelObserver
+    from youbot_fdi.fdi.recursions import scalar_recursion
+    observer = ModelObserver(model, FdiSettings())
+    level = np.array([[-0.4] * 4, [0.3] * 4])
+    torque = np.array([[1.0], [1.2]]) * level  # steady: the explained torque is the level
+    votes = np.concatenate(observer._load_votes(torque, level, level, 0.0 * level, None), axis=1)
+    keep = np.full(2, 0.5)
+    smoothed = scalar_recursion(keep, (1.0 - keep)[:, None] * votes, np.zeros(12))
+    factor = observer._load_factor(smoothed, 1.0, np.ones((2, 4)))[0]
+    np.testing.assert_allclose(factor, [1.0, 1.12], rtol=1e-12)
+
+
 def test_the_load_spread_is_how_far_the_other_wheels_stand_from_the_factor():
     """Per wheel, the median over the other voting wheels of |ratio - factor|: a wheel's own
     fault leaves its spread as the others make it; one faulty wheel among three others moves

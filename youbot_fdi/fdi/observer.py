@@ -958,12 +958,12 @@ class ModelObserver:
 
     def _load_votes(self, mean_torque, explained, friction, viscous, drag_shape):
         """Per wheel, (load part: measured minus inertial torque, friction level, its viscous
-        part ``viscous``), zero where the wheel does not vote on the load factor (friction level
-        under the torque floor, under the inertial torque, or not above the drag its rollers may
-        pass, ``drag_shape`` (N, n) the drag's pattern or None; effort unknown). With the contact
-        law the "inertial" part is the explained torque less the friction level, so the load
-        part is the level plus what the model does not explain: its ratio to the level is 1 on
-        the calibrated floor.
+        part ``viscous``), each taken in the friction's direction (the level's size), zero where
+        the wheel does not vote on the load factor (friction level under the torque floor, under
+        the inertial torque, or not above the drag its rollers may pass, ``drag_shape`` (N, n)
+        the drag's pattern or None; effort unknown). With the contact law the "inertial" part is
+        the explained torque less the friction level, so the load part is the level plus what
+        the model does not explain: its ratio to the level is 1 on the calibrated floor.
 
         Why the rollers' drag: a mecanum roller gliding along its free direction passes part of
         the floor's drag to its wheel (``_shared_drag``), up to the wheel's own Coulomb level
@@ -986,8 +986,12 @@ class ModelObserver:
                  & np.isfinite(load_part))
         if drag_shape is not None:
             votes &= np.abs(friction) > np.abs(self.model.dynamics.coulomb * drag_shape)
-        return (np.where(votes, load_part, 0.0), np.where(votes, friction, 0.0),
-                np.where(votes, viscous, 0.0))
+        # In the friction's direction: the smoothed ratio is then every row's ratio weighed by
+        # its level's size. Summed with their signs, the levels of a wheel reversing cancel and
+        # their ratio is no mean of the rows' (test_observer.py, the wheel reversing).
+        direction = np.sign(friction)
+        return (np.where(votes, load_part * direction, 0.0), np.where(votes, np.abs(friction), 0.0),
+                np.where(votes, viscous * direction, 0.0))
 
     def _share_interval(self, speed, viscous, friction):
         """Each wheel's Coulomb share (N, n) [0..1] of its friction level ``friction`` [N·m]
