@@ -130,3 +130,23 @@ def test_the_plants_coulomb_friction_in_the_fdis_terms_is_its_bearings_and_rolli
     table = randomized.identification_table(params, {0: {'found': found, 'unexcited': []}})
     row = next(line for line in table.splitlines() if line.strip().startswith('coulomb_friction'))
     assert row.split()[3] == '75%'  # three of the four wheels inside
+
+
+def test_the_identification_table_compares_the_fitted_pi_gains_and_states_no_interval_for_them():
+    """The firmware's gains act on the current the FDI reads: the truth is the plant's own. A
+    velocity-mode plant with k_p 1.5 and k_i 3 found at 3 and 3.3: |errors| 100 % and 10 %;
+    ``identify`` states no deviation for them, so their interval column reads "-"."""
+    import numpy as np
+    from dataclasses import replace
+    from youbot_fdi.bench import randomized
+    params = randomized.draw_plants(1, np.random.default_rng(0))
+    params = replace(params, kp=np.array([1.5]), ki=np.array([3.0]))
+    truth = randomized.truth_of(params, 0)
+    assert (truth['velocity_kp'], truth['velocity_ki']) == (1.5, 3.0)
+    found = {'mass': (truth['mass'], 0.1), 'velocity_kp': (3.0, float('nan')),
+             'velocity_ki': (3.3, float('nan'))}
+    table = randomized.identification_table(params, {0: {'found': found, 'unexcited': []}})
+    rows = {line.split()[0]: line.split() for line in table.splitlines()[2:]}
+    assert rows['velocity_kp'][1:4] == ['100.0%', '100.0%', '-']
+    assert rows['velocity_ki'][1:4] == ['10.0%', '10.0%', '-']
+    assert rows['mass'][3] == '100%'

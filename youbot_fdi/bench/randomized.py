@@ -202,16 +202,21 @@ def _write(job):
 
 def _calibrate(job):
     """``identify`` on plant ``index``'s nominal drive: (index, parameter files, what it found:
-    {parameter: (value, standard deviation)} and the names it called not excited)."""
+    {parameter: (value, standard deviation; NaN: none stated)} and the names it called not
+    excited). A drive in velocity mode also fits the firmware's PI gains, which ``identify``
+    states no deviation for."""
     from youbot_fdi.bench.calibration import calibrate
     from youbot_fdi.model.profile import load_model
-    index, path, directory = job
+    index, path, directory, velocity_mode = job
     params, result = calibrate(path, load_model(PROFILE), Path(directory) / f'params{index:03d}')
     dynamics, sd = result.profile.dynamics, result.info.get('uncertainty', {})
     values = {'mass': dynamics.mass, 'yaw_inertia': dynamics.yaw_inertia,
               'wheel_inertia': dynamics.wheel_inertia[0],
               **{f'viscous_friction[{j}]': v for j, v in enumerate(dynamics.viscous_friction)},
               **{f'coulomb_friction[{j}]': v for j, v in enumerate(dynamics.coulomb_friction)}}
+    if velocity_mode:
+        firmware = result.profile.firmware
+        values.update(velocity_kp=firmware.velocity_kp, velocity_ki=firmware.velocity_ki)
     found = {name: (float(value), float(sd.get(name, math.nan))) for name, value in values.items()}
     return index, params, {'found': found, 'unexcited': list(result.info.get('unexcited', []))}
 
@@ -226,7 +231,8 @@ def truth_of(params, index):
     wheel's rolling resistance at the wheel's share of the weight (calibration drives carry no
     payload on the suite's own floor). The rollers' drag, which follows the base's motion and not
     the wheel's, is no per-wheel term: where it matters the stated deviation's model-form part
-    (identify's rollers' drag alternative) says so."""
+    (identify's rollers' drag alternative) says so. The firmware's PI gains act on the current
+    the FDI reads, so they are the plant's as they are."""
     scale = float(params.torque_scale[index])
     rolling = float(params.rolling_resistance[index]) * plant.GRAVITY * float(params.mass[index]) / plant.WHEELS
     return {'mass': float(params.mass[index]) / scale,
@@ -234,21 +240,22 @@ def truth_of(params, index):
             'wheel_inertia': float(params.wheel_inertia[index]) / scale,
             **{f'viscous_friction[{j}]': float(v) / scale for j, v in enumerate(params.viscous[index])},
             **{f'coulomb_friction[{j}]': (float(c) + rolling) / scale
-               for j, c in enumerate(params.coulomb[index])}}
+               for j, c in enumerate(params.coulomb[index])},
+            'velocity_kp': float(params.kp[index]), 'velocity_ki': float(params.ki[index])}
 
 
 def identification_table(params, identified):
     """Identification against the plants' truth (issue 34): per parameter, the median and 90th
     percentile of |error| [%], the share of plants whose truth lies inside the stated
-    value ± 2 standard deviations (a 95 % interval if the deviations are honest), and the plants
-    that named it not excited."""
+    value ± 2 standard deviations (a 95 % interval if the deviations are honest; "-" where none
+    is stated), and the plants that named it not excited."""
     rows = {}
     for index, result in identified.items():
         truth = truth_of(params, index)
         for name, (value, sd) in result['found'].items():
             family = name.split('[')[0]
             error = (value - truth[name]) / truth[name]
-            inside = abs(value - truth[name]) <= INTERVAL_SDS * sd
+            inside = None if math.isnan(sd) else abs(value - truth[name]) <= INTERVAL_SDS * sd
             excited = name not in result['unexcited']
             rows.setdefault(family, []).append((abs(error), inside, excited))
     lines = [f'Identification against truth ({len(identified)} plants, each from its own nominal '
@@ -257,9 +264,10 @@ def identification_table(params, identified):
              f'{"not excited":>13}']
     for family, values in rows.items():
         error = np.array([v[0] for v in values])
+        stated = [v[1] for v in values if v[1] is not None]
+        inside = f'{np.mean(stated):.0%}' if stated else '-'
         lines.append(f'  {family:<18}{100 * np.median(error):>12.1f}%{100 * np.percentile(error, 90):>10.1f}%'
-                     f'{np.mean([v[1] for v in values]):>14.0%}{sum(not v[2] for v in values):>9}/'
-                     f'{len(values)}')
+                     f'{inside:>14}{sum(not v[2] for v in values):>9}/{len(values)}')
     return '\n'.join(lines)
 
 
@@ -308,7 +316,8 @@ def run_suite(workdir, progress=print, workers=2, seed=0, plants=PLANTS,
                                 conditions=tuple(styles[p]) + conditions_of(drive)))
         calibration = [r for r in runs if r.kind == 'calibration']
         progress(f'randomized: identify on each plant\'s nominal drive ({plants}) ...')
-        calibrated = list(pool.map(_calibrate, [(r.plant, r.path, str(workdir)) for r in calibration]))
+        calibrated = list(pool.map(_calibrate, [(r.plant, r.path, str(workdir),
+                                                 not params.current_mode[r.plant]) for r in calibration]))
         identified = {index: files for index, files, _ in calibrated}
         judged = [r for r in runs if r.kind != 'calibration']
         progress(f'randomized: {len(judged)} replays ...')
