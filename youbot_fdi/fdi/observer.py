@@ -473,8 +473,8 @@ class ModelObserver:
         self._known_commands = CommandBatch.empty(self.n)  # received, kinematic convention
         self._commands_sorted = True  # _known_commands in stamp order (command() tells)
         self.signed_effort = drive.signed_effort
-        #: smoothed [load part; friction torque; its viscous part] per wheel, and the load
-        #: factor; it outlives gaps
+        #: smoothed [load part; friction torque; its viscous part] per wheel, each in the
+        #: friction's direction (``_load_votes``), and the load factor; it outlives gaps
         self._load = (np.zeros(3 * self.n), 1.0)
         #: smoothed [drag part; glide share] per wheel and the shared drag [N·m]; outlives gaps
         self._drag = (np.zeros(2 * self.n), 0.0)
