@@ -6,7 +6,7 @@ import scipy.optimize
 from youbot_fdi.fdi.identify import (BroydenJacobian, DELAY_COARSE_STEPS, descend_grid, for_search,
                                      RecordingArrays, search_grid, SEARCH_SECONDS, SEARCH_WINDOWS)
 
-FAST_EXCEPT = ()  # all of it in ``make check``
+FAST_EXCEPT = ('test_the_pi_gains_are_fitted_with_the_rollers_drag_the_fdis_model_leaves_out',)
 
 
 def test_the_delay_grid_is_searched_coarsely_then_step_by_step_around_the_best():
@@ -221,3 +221,44 @@ def test_identify_names_the_wheels_whose_friction_split_it_could_not_tell():
                  'coulomb_friction[1]': 0.03, 'viscous_friction[1]': 0.01,
                  'coulomb_friction[2]': 0.02, 'viscous_friction[2]': 0.02}
     assert _split_unknown(['fl', 'fr', 'bl', 'br'], dynamics, deviation) == ['fr', 'bl']
+
+
+def test_the_pi_gains_are_fitted_with_the_rollers_drag_the_fdis_model_leaves_out(tmp_path):
+    """A base the FDI's model did not write (bench/plant.py: its own integrator, contact and
+    firmware), whose floor holds its gliding rollers back, driven 20 s in velocity mode at
+    125 Hz. Its loop's k_p 1.6 A/(rad/s) and k_i 4.5 A/rad are found within 10 % by ``identify``,
+    which fits them with the rollers' drag (``model_for_loop_fit``) while the FDI's model keeps
+    none; fitted on the model without the drag, on this drive, the loop comes out over 1.5 times
+    faster in k_p and k_i alike, the later delay taking what a rejected drag looks like."""
+    from dataclasses import replace
+    from youbot_fdi.app.config import residual_data_for
+    from youbot_fdi.app.recordings import read_arrays
+    from youbot_fdi.bench import plant, randomized
+    from youbot_fdi.fdi.identify import delay_grid, fit_delay_and_gains, identify
+    from youbot_fdi.fdi.settings import FdiSettings
+    from youbot_fdi.model.profile import load_model, PlatformModel
+    values = dict(mass=24.6, yaw_inertia=1.12, wheel_inertia=0.011, viscous=[0.07] * 4,
+                  coulomb=[0.04] * 4, asymmetry=[0.0] * 4, traction=0.76, roller_resistance=0.028,
+                  rolling_resistance=0.00024, torque_scale=1.0, kp=1.6, ki=4.5, current_limit=2.9,
+                  current_lag=0.0017, delay=0.0005, current_mode=False, sample_rate=125.0,
+                  jitter=0.0, drop=0.0, command_rate=0.0, on_change=False, quantised=False,
+                  speed_reading=0, speed_lag=0.0, speed_noise=0.0, current_noise=0.01)
+    params = plant.PlantParameters(**{name: np.array([v]) for name, v in values.items()})
+    seconds = 20.0
+    knots, twists = randomized.random_knots(np.random.default_rng(2), seconds, 0.25, 0.6, 0.5, 1.0,
+                                            stop_share=0.15)
+    recording = plant.simulate(params, [plant.Drive(knots, twists, seconds)], seed=2)[0]
+    path = str(tmp_path / 'calibration')
+    prior = load_model(randomized.PROFILE)
+    randomized.write(recording, path, prior.wheel_names)
+    arrays = read_arrays(path, prior)
+    settings = FdiSettings()
+    result = identify(arrays, prior, settings, residual_data_for(prior, settings), learn=False)
+    found = result.profile.firmware
+    assert result.profile.dynamics.roller_drag == 0.0  # the FDI's model: none
+    assert result.info['loop_fit_roller_drag'] > 0.0
+    assert found.velocity_kp == pytest.approx(values['kp'], rel=0.1)
+    assert found.velocity_ki == pytest.approx(values['ki'], rel=0.1)
+    without = PlatformModel(replace(prior.profile, dynamics=result.profile.dynamics))
+    _, plain, _ = fit_delay_and_gains(without, for_search(arrays), delay_grid(1.0 / values['sample_rate']))
+    assert plain.velocity_kp > 1.5 * values['kp'] and plain.velocity_ki > 1.5 * values['ki']

@@ -131,8 +131,11 @@ def run(args):
         mass, yaw, wheel = profile.dynamics.loop_inertias
         print(f'  the velocity loop (stepped at its own period) moves the prior\'s: mass {mass:.4g} kg, '
               f'J_z {yaw:.4g} kg·m², J_w {wheel:.4g} kg·m² (loop_inertias)')
+    drag = result.info.get('loop_fit_roller_drag')
     print(f'  firmware PI: kp {profile.firmware.velocity_kp:.3g} A/(rad/s), '
-          f'ki {profile.firmware.velocity_ki:.3g} A/rad')
+          f'ki {profile.firmware.velocity_ki:.3g} A/rad'
+          + ('' if drag is None else f' (fitted with the rollers\' drag, {drag:.3g} N·m, which the '
+             'FDI\'s model leaves out unless fit_roller_drag)'))
     if 'input_delay' in result.fdi:
         print(f'  input delay (commands to wheels): {1000 * result.fdi["input_delay"]:.1f} ms')
     if result.info.get('command_watchdog'):
