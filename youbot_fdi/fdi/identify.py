@@ -1147,9 +1147,9 @@ def model_for_loop_fit(arrays, prior_model, model, settings, info):
     """The model the firmware loop's gains and input delay are fitted on (a PlatformModel):
     ``model`` with its dynamics fitted again from ``prior_model`` with the rollers' drag
     (:func:`fit_dynamics`, ``fit_roller_drag``; the firmware loop keeps ``model``'s loop
-    inertias where it has its own), where the wheels' rollers
-    turn them (a mecanum base) and ``model`` has no drag; else ``model``. ``info`` gets the drag
-    fitted (``loop_fit_roller_drag`` [N·m]).
+    inertias where it has its own), where the wheels' rollers turn them (a mecanum base) and
+    ``model`` has no drag; else ``model``. ``info`` gets the drag fitted
+    (``loop_fit_roller_drag`` [N·m]).
 
     Why: the gains are the modules' and the delay the transport's, not the floor's. A torque the
     model misses is a disturbance the loop rejects, and a faster loop acting later mimics that
