@@ -48,7 +48,7 @@ from youbot_fdi.fdi.settings import FdiSettings
 from youbot_fdi.model.dynamics import rolling_share
 from youbot_fdi.model.firmware import response_time_constant
 from youbot_fdi.model.profile import ModelProfile, PlatformModel
-from youbot_fdi.samples import CommandBatch, JointBatch
+from youbot_fdi.samples import CommandBatch, EFFORT, JointBatch, VELOCITY
 
 SAVGOL_WINDOW = 9  # samples
 SAVGOL_ORDER = 2
@@ -663,6 +663,12 @@ def for_search(arrays):
                    velocity=arrays.velocity[pick], torque=arrays.torque[pick])
 
 
+def velocity_commanded(arrays):
+    """Whether the recording ``arrays`` holds velocity commands (the firmware's PI loop is then
+    in it, and its gains can be fitted)."""
+    return any(c.kind == VELOCITY for c in arrays.commands)
+
+
 def fit_input_delay(model, arrays, delays, command_timeout=WATCHDOG, refine=True):
     """The input delay [s] on the grid ``delays`` that best explains the measurements from the
     commands with ``model``'s gains: the speeds through the firmware loop (velocity commands),
@@ -670,11 +676,10 @@ def fit_input_delay(model, arrays, delays, command_timeout=WATCHDOG, refine=True
     :func:`search_grid` does (without ``refine``: its coarse points only); commands held
     ``command_timeout`` [s]. Returns (delay, mean squared errors on the grid: NaN where not
     tried), or None without commands."""
-    kinds = {c.kind for c in arrays.commands}
-    if 'velocity' in kinds:
+    if velocity_commanded(arrays):
         def error(d):
             return command_speed_error(model, arrays, d, command_timeout)
-    elif 'effort' in kinds:
+    elif any(c.kind == EFFORT for c in arrays.commands):
         def error(d):
             return _effort_error(model, arrays, d, command_timeout)
     else:
@@ -698,7 +703,7 @@ def fit_delay_and_gains(model, arrays, delays, command_timeout=WATCHDOG):
     in the trade's nearest valley (randomized plants of the benchmark: k_i 2.5 to 4 times the
     truth's with a delay 30 ms late: plant 110, k_i 7.3 against 2.9); walking the error of the
     best gains at each delay, it finds the plant's (plant 110: 3.8)."""
-    if not any(c.kind == 'velocity' for c in arrays.commands):
+    if not velocity_commanded(arrays):
         return None
     # The walk's start needs no finer delay than its first stride: the coarse grid's best.
     first, _ = fit_input_delay(model, arrays, delays, command_timeout, refine=False)
@@ -869,7 +874,7 @@ def fit_firmware_gains(model, arrays, input_delay=0.0, command_timeout=WATCHDOG,
     """Velocity PI gains that make the command-path prediction match (commands acting
     ``input_delay`` [s] late, held ``command_timeout`` [s]): a :class:`GainFit`, None without
     velocity commands. ``jacobian``: a nearby fit's, to start from (else forward differences)."""
-    if not any(c.kind == 'velocity' for c in arrays.commands):
+    if not velocity_commanded(arrays):
         return None
     kp = model.firmware.velocity_kp
     start = np.log([kp, max(model.firmware.velocity_ki, MIN_INTEGRAL_SHARE * kp)])  # ki may be 0
@@ -1203,7 +1208,7 @@ def identify(arrays, prior_model, settings, residual_data, fit_gains=True, learn
     if fit_gains:
         joint = (fit_delay_and_gains(model_for_loop_fit(arrays, prior_model, model, settings, info),
                                      searched, delays, command_timeout=timeout)
-                 if any(c.kind == 'velocity' for c in arrays.commands) else None)
+                 if velocity_commanded(arrays) else None)
         if joint is not None:  # velocity commands: the delay and the gains together
             delay, firmware, delay_errors = joint
             model = PlatformModel(replace(model.profile, firmware=firmware))
