@@ -108,6 +108,30 @@ def test_a_randomized_fault_that_never_showed_is_no_detection_case():
     assert 'driven fault-free: 0.0 h' in text  # 2 x 9 s before the injection
 
 
+def test_the_randomized_default_magnitudes_are_also_reported_per_control_mode():
+    """Two stuck wheels at the default magnitude, one on a velocity-mode plant found 50 ms after
+    its onset and one on a current-mode plant never found: 1/2 in all, and per mode 1/1 (median
+    50 ms) and 0/1 (no delay to state, so the mode's figures are NaN, not left out)."""
+    import numpy as np
+    from youbot_fdi.bench import randomized
+    from youbot_fdi.bench.plant import PlantParameters
+    start = randomized.START_STAMP
+    runs = [randomized.Run(p, 'fault', 'stuck', f'r{p}', 20.0, 'stuck', 'w0', start + 9.0, start,
+                           start + 9.0) for p in (0, 1)]
+    events = {0: [FaultEvent(start + 9.05, 'ERROR', 'w0', 'stuck')], 1: []}
+    scored = []
+    for run in runs:
+        case = Case(run.label, run.path, run.duration, run.fault, run.wheel, run.onset, None, run.start,
+                    run.injected)
+        scored.append((run, {**score(case, events[run.plant]), 'fault': run.label}))
+    fields = {name: np.zeros(2) for name in PlantParameters.__dataclass_fields__}
+    fields['current_mode'] = np.array([False, True])
+    text = randomized.summarise(PlantParameters(**fields), scored)
+    assert 'default magnitude: 1/2 detected and isolated; median 50 ms' in text
+    assert 'velocity mode 1/1 detected and isolated; median 50 ms' in text
+    assert 'current mode 0/1 detected and isolated; median nan ms' in text
+
+
 def test_the_plants_coulomb_friction_in_the_fdis_terms_is_its_bearings_and_rolling_resistance():
     """A 20 kg plant with 0.03 N·m of bearing Coulomb friction, a rolling resistance of 0.5 mm
     (a quarter of the weight on each wheel: 0.0005 x 9.81 x 20 / 4 = 0.024525 N·m) and a torque

@@ -351,13 +351,23 @@ def summarise(params, scored):
     if unseen:
         lines.append(f'  ({len(unseen)} fault runs left out of detection: their wheel was not driven '
                      'after the fault, so it never showed)')
-    default = [r for r in visible if r['fault'] in DEFAULT_MAGNITUDE]
-    delays = np.array([r['delay'] for r in default if r['detected'] and r['isolated']])
-    lines.append(f'  default magnitude: {sum(r["detected"] and r["isolated"] for r in default)}/'
-                 f'{len(default)} detected and isolated; median '
-                 f'{1000 * np.median(delays) if len(delays) else math.nan:.0f} ms, p90 '
-                 f'{1000 * np.percentile(delays, 90) if len(delays) else math.nan:.0f} ms')
+    default = [(run, r) for run, r in scored if id(r) not in unseen and r['fault'] in DEFAULT_MAGNITUDE]
+    lines.append(f'  default magnitude: {_detection(r for _, r in default)}')
+    modes = {mode: [r for run, r in default if bool(params.current_mode[run.plant]) == current]
+             for mode, current in (('velocity', False), ('current', True))}
+    lines.append('    by control mode: ' + '; '.join(f'{mode} mode {_detection(cases)}'
+                                                     for mode, cases in modes.items() if cases))
     return '\n'.join(lines)
+
+
+def _detection(results):
+    """'found/cases detected and isolated; median .. ms, p90 .. ms' of fault results."""
+    results = list(results)
+    found = [r for r in results if r['detected'] and r['isolated']]
+    delays = 1000.0 * np.array([r['delay'] for r in found])
+    return (f'{len(found)}/{len(results)} detected and isolated; median '
+            f'{np.median(delays) if len(delays) else math.nan:.0f} ms, p90 '
+            f'{np.percentile(delays, 90) if len(delays) else math.nan:.0f} ms')
 
 
 def describe_alarms(params, alarmed):
