@@ -234,8 +234,9 @@ def run_crossval(workdir, progress=print, workers=2, root=None):
 def fold_figures(results):
     """A fold's figures from its result dicts: hours, false alarms, runs with one, abrupt faults
     found and isolated, their median and p90 delay, ramps found before x2, intermittent found."""
+    from youbot_fdi.bench.scoring import delay_quantiles
     abrupt = [r for r in results if r['fault'] in robotino.ABRUPT]
-    delays = np.array([r['delay'] for r in abrupt if r['detected'] and r['isolated']])
+    median, p90 = delay_quantiles(abrupt)
     ramps = [r for r in results if r['fault'] == 'ramp']
     intermittent = [r for r in results if r['fault'] == 'intermittent']
     return {
@@ -245,8 +246,8 @@ def fold_figures(results):
         'runs_with_alarm': sum(1 for r in results if r['false_alarms']),
         'abrupt': len(abrupt),
         'abrupt_isolated': sum(r['detected'] and r['isolated'] for r in abrupt),
-        'median': float(np.median(delays)) if len(delays) else math.nan,
-        'p90': float(np.percentile(delays, 90)) if len(delays) else math.nan,
+        'median': median,
+        'p90': p90,
         'ramps': len(ramps),
         'ramps_in_time': sum(r['detected'] and r['isolated'] and r['delay'] < robotino.RAMP_TIME
                              for r in ramps),

@@ -362,12 +362,12 @@ def summarise(params, scored):
 
 def _detection(results):
     """'found/cases detected and isolated; median .. ms, p90 .. ms' of fault results."""
+    from youbot_fdi.bench.scoring import delay_quantiles
     results = list(results)
-    found = [r for r in results if r['detected'] and r['isolated']]
-    delays = 1000.0 * np.array([r['delay'] for r in found])
-    return (f'{len(found)}/{len(results)} detected and isolated; median '
-            f'{np.median(delays) if len(delays) else math.nan:.0f} ms, p90 '
-            f'{np.percentile(delays, 90) if len(delays) else math.nan:.0f} ms')
+    found = sum(r['detected'] and r['isolated'] for r in results)
+    median, p90 = delay_quantiles(results)
+    return (f'{found}/{len(results)} detected and isolated; median {1000 * median:.0f} ms, '
+            f'p90 {1000 * p90:.0f} ms')
 
 
 def describe_alarms(params, alarmed):

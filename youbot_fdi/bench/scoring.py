@@ -134,13 +134,20 @@ def dwell_line(results, dwell=None):
             f'runs with two closer: {under} of {len(results)}')
 
 
+def delay_quantiles(results):
+    """(median, p90) [s] of the detection delays of the results detected and isolated; both NaN
+    when there are none."""
+    delays = np.array([r['delay'] for r in results if r['detected'] and r['isolated']])
+    if not len(delays):
+        return math.nan, math.nan
+    return float(np.median(delays)), float(np.percentile(delays, 90))
+
+
 def _row(label, rows):
-    delays = np.array([r['delay'] for r in rows if r['detected'] and r['isolated']])
-    median = np.median(delays) * 1000 if len(delays) else math.nan
-    p90 = np.percentile(delays, 90) * 1000 if len(delays) else math.nan
+    median, p90 = delay_quantiles(rows)
     return (f'{label:<18}{len(rows):>6}{sum(r["detected"] for r in rows):>10}'
             f'{sum(r["isolated"] for r in rows):>10}{sum(r["named"] for r in rows):>8}'
-            f'{median:>12.0f}ms{p90:>9.0f}ms')
+            f'{median * 1000:>12.0f}ms{p90 * 1000:>9.0f}ms')
 
 
 def replay_scored(case, params):
@@ -177,7 +184,7 @@ def ablation(rows):
              f'{"detected":>10}{"isolated":>10}{"median":>9}{"p90":>8}{"false alarms/h":>16}']
     for suite, variant, results, spread in rows:
         faulty = [r for r in results if r['fault'] and r.get('observable', True)]
-        delays = np.array([r['delay'] for r in faulty if r['detected'] and r['isolated']])
+        median, p90 = delay_quantiles(faulty)
         hours = sum(r['fault_free_seconds'] for r in results) / 3600.0
         alarms = sum(r['false_alarms'] for r in results)
         rms = (spread or {}).get(variant) or {}
@@ -186,8 +193,7 @@ def ablation(rows):
                      f'{held.get("torque", math.nan):>12.4g}{held.get("observer", math.nan):>10.4g}'
                      f'{sum(r["detected"] for r in faulty):>6}/{len(faulty):<3}'
                      f'{sum(r["isolated"] for r in faulty):>6}/{len(faulty):<3}'
-                     f'{(np.median(delays) * 1000 if len(delays) else math.nan):>7.0f}ms'
-                     f'{(np.percentile(delays, 90) * 1000 if len(delays) else math.nan):>6.0f}ms'
+                     f'{median * 1000:>7.0f}ms{p90 * 1000:>6.0f}ms'
                      f'{(alarms / hours if hours else math.nan):>16.1f}')
     lines.append('  (RMS [N·m, rad/s] over the wheels: "calib." on the calibration recording, '
                  '"held back" pooled over the fault-free recordings; delays of faults detected '

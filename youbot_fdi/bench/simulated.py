@@ -231,8 +231,9 @@ def run_fault_benchmark(variations=3, seed=0, workers=2, progress=print, workdir
 
 def summarise(plants, results):
     """The printed benchmark summary."""
+    from youbot_fdi.bench.scoring import delay_quantiles
     faulty = [r for r in results if r['fault'] and r['observable']]
-    delays = np.array([r['delay'] for r in faulty if r['detected'] and r['isolated']])
+    all_median, all_p90 = delay_quantiles(faulty)
     hours = sum(r['fault_free_seconds'] for r in results) / 3600.0
     false_alarms = sum(r['false_alarms'] for r in results)
     replay = sum(r.get('replay_time', 0.0) for r in results)
@@ -244,11 +245,10 @@ def summarise(plants, results):
     for fault in sorted({r['fault'] for r in faulty}):
         for mode in modes:
             rows = [r for r in faulty if r['fault'] == fault and r['mode'] == mode]
-            d = np.array([r['delay'] for r in rows if r['detected'] and r['isolated']])
+            median, p90 = delay_quantiles(rows)
             lines.append(f'{fault:<16}{mode:<10}{len(rows):>6}{sum(r["detected"] for r in rows):>10}'
                          f'{sum(r["isolated"] for r in rows):>10}{sum(r["named"] for r in rows):>8}'
-                         f'{(np.median(d) * 1000 if len(d) else math.nan):>12.0f}ms'
-                         f'{(np.percentile(d, 90) * 1000 if len(d) else math.nan):>9.0f}ms')
+                         f'{median * 1000:>12.0f}ms{p90 * 1000:>9.0f}ms')
     for mode in modes:
         rows = [r for r in results if r['mode'] == mode]
         seconds = sum(r['fault_free_seconds'] for r in rows)
@@ -260,8 +260,8 @@ def summarise(plants, results):
               f'isolation accuracy  {sum(r["isolated"] for r in faulty)}/{len(faulty)} (wheel)',
               f'type accuracy       {sum(r["named"] for r in faulty)}/{len(faulty)}'
               + (f'  (misnamed: {wrong})' if wrong else ''),
-              f'detection delay     median {np.median(delays) * 1000:.0f} ms, '
-              f'p90 {np.percentile(delays, 90) * 1000:.0f} ms' if len(delays) else 'no delays',
+              f'detection delay     median {all_median * 1000:.0f} ms, '
+              f'p90 {all_p90 * 1000:.0f} ms' if not math.isnan(all_median) else 'no delays',
               f'false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free = '
               f'{false_alarms / hours:.1f} per hour' if hours else '',
               f'replay speed        {replay:.2f} s replay vs {decode:.2f} s decode-only = '
