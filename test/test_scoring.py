@@ -174,3 +174,29 @@ def test_the_identification_table_compares_the_fitted_pi_gains_and_states_no_int
     assert rows['velocity_kp'][1:4] == ['100.0%', '100.0%', '-']
     assert rows['velocity_ki'][1:4] == ['10.0%', '10.0%', '-']
     assert rows['mass'][3] == '100%'
+
+
+@pytest.mark.parametrize('alarms', [0, 1, 3, 41])
+def test_the_false_alarm_rate_bound_is_the_poisson_rate_that_makes_the_count_unlikely(alarms):
+    """The printed upper bound u of a rate after k alarms in T hours is the rate at which k or
+    fewer come with probability 1 - 95 %: sum_{i<=k} e^-uT (uT)^i / i! = 0.05 (hand-derived:
+    for k = 0, u = -ln(0.05) / T = 2.996 / T, so 0 alarms in 20 h bound the rate by 0.15/h)."""
+    from youbot_fdi.bench.scoring import RATE_CONFIDENCE, rate_upper_bound
+    hours = 20.0
+    bound = rate_upper_bound(alarms, hours)
+    mean = bound * hours
+    at_most = sum(math.exp(-mean) * mean ** i / math.factorial(i) for i in range(alarms + 1))
+    assert at_most == pytest.approx(1.0 - RATE_CONFIDENCE, rel=1e-9)
+    assert bound > alarms / hours
+    if alarms == 0:
+        assert bound == pytest.approx(-math.log(0.05) / hours) and bound == pytest.approx(0.1498, abs=1e-4)
+    assert math.isinf(rate_upper_bound(alarms, 0.0))
+    with pytest.raises(ValueError, match='alarms >= 0'):
+        rate_upper_bound(-1, hours)
+
+
+def test_the_suite_table_prints_the_rate_with_its_upper_bound():
+    """0 alarms in 180 s say the rate is under 60 per hour, not that it is 0."""
+    quiet = Case('plant000/fault_free', 'unused', 60.0)
+    table = summarise('t', [score(quiet, []) for _ in range(3)])
+    assert 'false alarms        0 in 180 s fault-free = 0 per hour (at most 60 per hour, 95% one-sided)' in table

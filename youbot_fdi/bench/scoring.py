@@ -15,6 +15,10 @@ ERROR = Level.ERROR
 #: The type named for an episode is its last ERROR on that wheel within this time of the first [s]
 #: (a type may be refined once the classification window is full).
 NAMING_WINDOW = 0.55
+#: The one-sided confidence of the printed upper bound on a suite's false-alarm rate [-]: a
+#: count of alarms in some hours is one draw of a Poisson count, and "0 in 393 s" says far less
+#: than "0 in 20 h" (at most 27 per hour against 0.15).
+RATE_CONFIDENCE = 0.95
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,29 @@ def score(case, events):
             'closest_events': closest_events(events)}
 
 
+def rate_upper_bound(alarms, hours, confidence=RATE_CONFIDENCE):
+    """The exact one-sided upper confidence bound [per hour] of a Poisson rate of which
+    ``alarms`` events were counted in ``hours`` [h]: the rate at which ``alarms`` or fewer come
+    with probability ``1 - confidence``, ``gammaincinv(alarms + 1, confidence) / hours`` (for no
+    alarm, ``-ln(1 - confidence) / hours``); inf without hours."""
+    from scipy.special import gammaincinv
+    if alarms < 0 or not 0.0 < confidence < 1.0:
+        msg = f'rate_upper_bound needs alarms >= 0 and 0 < confidence < 1, got {alarms}, {confidence}'
+        raise ValueError(msg)
+    return float(gammaincinv(alarms + 1, confidence)) / hours if hours > 0 else math.inf
+
+
+def rate_text(alarms, hours):
+    """' = r per hour (at most u per hour, 95 % one-sided)' for ``alarms`` in ``hours`` [h], ''
+    without hours."""
+    if not hours:
+        return ''
+    bound = rate_upper_bound(alarms, hours)
+    digits = '.2g' if bound < 100.0 else '.0f'  # two significant digits, no exponent
+    return (f' = {alarms / hours:{digits}} per hour (at most {bound:{digits}} per hour, '
+            f'{RATE_CONFIDENCE:.0%} one-sided)')
+
+
 def summarise(title, results):
     """The printed table of one suite: per fault, then totals (false alarms per hour)."""
     faulty = [r for r in results if r['fault']]
@@ -99,7 +126,7 @@ def summarise(title, results):
     with_alarms = sorted({r['case'] for r in results if r['false_alarms']})
     events = sum(r['false_alarm_events'] for r in results)
     lines.append(f'  false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free'
-                 + (f' = {false_alarms / hours:.1f} per hour' if hours else '')
+                 + rate_text(false_alarms, hours)
                  + (f' ({events} ERROR events with the types refined)' if events != false_alarms
                     else '')
                  + f'; runs with one: {alarmed} of {len(results)}'

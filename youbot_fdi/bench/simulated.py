@@ -231,7 +231,7 @@ def run_fault_benchmark(variations=3, seed=0, workers=2, progress=print, workdir
 
 def summarise(plants, results):
     """The printed benchmark summary."""
-    from youbot_fdi.bench.scoring import delay_quantiles
+    from youbot_fdi.bench.scoring import delay_quantiles, rate_text
     faulty = [r for r in results if r['fault'] and r['observable']]
     all_median, all_p90 = delay_quantiles(faulty)
     hours = sum(r['fault_free_seconds'] for r in results) / 3600.0
@@ -262,8 +262,8 @@ def summarise(plants, results):
               + (f'  (misnamed: {wrong})' if wrong else ''),
               f'detection delay     median {all_median * 1000:.0f} ms, '
               f'p90 {all_p90 * 1000:.0f} ms' if not math.isnan(all_median) else 'no delays',
-              f'false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free = '
-              f'{false_alarms / hours:.1f} per hour' if hours else '',
+              f'false alarms        {false_alarms} in {hours * 3600:.0f} s fault-free'
+              f'{rate_text(false_alarms, hours)}' if hours else '',
               f'replay speed        {replay:.2f} s replay vs {decode:.2f} s decode-only = '
               f'{replay / decode:.2f}x decode (target 1.5x)']
     unobservable = [r for r in results if r['fault'] and not r['observable']]
