@@ -200,3 +200,23 @@ def test_the_suite_table_prints_the_rate_with_its_upper_bound():
     quiet = Case('plant000/fault_free', 'unused', 60.0)
     table = summarise('t', [score(quiet, []) for _ in range(3)])
     assert 'false alarms        0 in 180 s fault-free = 0 per hour (at most 60 per hour, 95% one-sided)' in table
+
+
+def test_the_simulated_suite_summary_counts_and_bounds_what_it_was_given():
+    """The virtual base's summary (bench/simulated.py) from plain result dicts: detection and
+    isolation counts over the observable faults, the median delay of the isolated ones, and the
+    false-alarm rate with its bound."""
+    from youbot_fdi.bench.simulated import summarise as simulated_summary
+
+    def result(fault, delay, isolated=True, alarms=0):
+        return dict(fault=fault, mode='velocity', observable=True, detected=True, isolated=isolated,
+                    named=isolated, named_as=fault, delay=delay, fault_free_seconds=360.0,
+                    false_alarms=alarms, replay_time=1.0, decode_time=0.8)
+
+    results = [result('stuck', 0.1), result('stuck', 0.3), result('friction', 0.2, isolated=False),
+               result(None, math.nan, alarms=1)]
+    text = simulated_summary([], results)
+    assert 'detection rate      3/3' in text and 'isolation accuracy  2/3 (wheel)' in text
+    assert 'detection delay     median 200 ms' in text  # of the two isolated: 0.1 and 0.3 s
+    assert 'false alarms        1 in 1440 s fault-free = 2.5 per hour (at most 12 per hour' in text
+    assert 'replay speed        4.00 s replay vs 3.20 s decode-only = 1.25x decode' in text
